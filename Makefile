@@ -1,0 +1,35 @@
+# psimap: `make demo` and `make test` set everything up on a fresh machine.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.psimap-installed
+NATIVE_SRC := $(wildcard psimap/render/csrc/*) CMakeLists.txt pyproject.toml
+
+.PHONY: install demo test bench clean
+
+install: $(STAMP)
+
+$(STAMP): $(NATIVE_SRC)
+	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || { \
+	  echo "installing Debian's libusb-1.0-0 (open3d needs it)"; \
+	  apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; }
+	@test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# torch first, pinned: a looser spec pulls a multi-GB CUDA build.
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q "scikit-build-core>=0.10" "nanobind>=2.0"
+	# The native kernels are built here; a compile error fails this step loudly.
+	$(PY) -m pip install -q --no-build-isolation -e ".[dev]"
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/psimap demo --out demo_out
+
+test: $(STAMP)
+	$(PY) -m pytest -q tests
+
+bench: $(STAMP)
+	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf build demo_out bench_out

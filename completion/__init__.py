@@ -1,0 +1,4 @@
+"""psimap.completion: collision-aware completion of partially observed objects.
+
+Installed as `psimap.completion`.
+"""

@@ -1,0 +1,5 @@
+import sys
+
+from psimap.cli import main
+
+sys.exit(main())

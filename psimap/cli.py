@@ -1,0 +1,111 @@
+"""The `psimap` command line: one entry point, one subcommand per stage.
+
+Each subcommand's options are a dataclass in `psimap.options`; its implementation is imported only
+when it runs, so `psimap --help` is instant.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import sys
+
+from psimap import options as O
+
+# name -> (options dataclass, "module:function", one-line help)
+COMMANDS = {
+    "demo": (O.DemoOptions, "psimap.demo:run", "embedded synthetic scene, end to end"),
+    "generate": (O.GenerateOptions, "psimap.data.synthetic:cli_generate",
+                 "write a synthetic scene with exact ground truth"),
+    "train": (O.TrainOptions, "psimap.train:cli_train", "train a panoptic surfel map"),
+    "mesh": (O.MeshOptions, "psimap.train:cli_mesh", "extract the whole-scene surface mesh"),
+    "export": (O.ExportOptions, "psimap.exporters:cli_export",
+               "export per-object assets (MJCF / USD / GLB)"),
+    "eval": (O.EvalOptions, "psimap.metrics.evaluate:cli_eval",
+             "geometry + panoptic metrics against ground truth"),
+    "labels": (O.LabelsOptions, "psimap.panoptic:cli_labels",
+               "3D-consistent 2D panoptic labels (COCO panoptic)"),
+}
+
+
+def _add_options(parser: argparse.ArgumentParser, cls) -> None:
+    for f in dataclasses.fields(cls):
+        meta = dict(f.metadata)
+        help_ = meta.pop("help", "")
+        if meta.pop("positional", False):
+            parser.add_argument(f.name, help=help_, **meta)
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if f.type in ("bool", bool):
+            parser.add_argument(flag, dest=f.name, action="store_true", help=help_)
+            continue
+        typ = {"int": int, "float": float, "str": str}.get(f.type, str) if isinstance(f.type, str) else f.type
+        parser.add_argument(flag, dest=f.name, type=typ, default=f.default,
+                            help=f"{help_} (default: {f.default})", **meta)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="psimap", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks on error")
+    parser.add_argument("--version", action="version", version=_version())
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (cls, _, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                       help="show full tracebacks on error")
+        _add_options(p, cls)
+    return parser
+
+
+def _version() -> str:
+    from psimap import __version__
+
+    return f"psimap {__version__}"
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    cls, target, _ = COMMANDS[args.command]
+    debug = getattr(args, "debug", False)
+    opts = cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)})
+    from psimap import PsimapError
+
+    try:
+        module, func = target.split(":")
+        try:
+            fn = getattr(importlib.import_module(module), func)
+        except ModuleNotFoundError as e:
+            # Only a missing psimap stage means "not implemented"; a missing dependency is an error.
+            if debug or not (e.name and module.startswith(e.name) and e.name.startswith("psimap")):
+                raise
+            print(f"psimap {args.command}: not implemented yet", file=sys.stderr)
+            return 3
+        except AttributeError:
+            if debug:
+                raise
+            print(f"psimap {args.command}: not implemented yet", file=sys.stderr)
+            return 3
+        rc = fn(opts)
+        return int(rc or 0)
+    except PsimapError as e:
+        if debug:
+            raise
+        print(f"psimap {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"psimap {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # unexpected: still one line unless --debug
+        if debug:
+            raise
+        print(f"psimap {args.command}: internal error: {type(e).__name__}: {e} (rerun with --debug)",
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,83 @@
+"""Core data types shared by every loader: a posed RGB-D frame and a lazily loaded sequence of them.
+
+Conventions (DESIGN.md): world frame Z-up, metres; cameras OpenCV (x right, y down, z forward);
+`c2w` is camera-to-world. Loaders convert to this at load time.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+
+@dataclass
+class Frame:
+    """One posed RGB-D frame.
+
+    rgb: [H, W, 3] float32 in [0, 1]; depth: [H, W] float32 metres, 0 = invalid;
+    K: [3, 3] float64 intrinsics; c2w: [4, 4] float64 camera-to-world (OpenCV).
+    semantic / instance: [H, W] integer label maps (per-frame pseudo-labels) or None.
+    lidar: [N, 4] float32 (x, y, z world, intensity) or None.
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    K: np.ndarray
+    c2w: np.ndarray
+    semantic: np.ndarray | None = None
+    instance: np.ndarray | None = None
+    lidar: np.ndarray | None = None
+    name: str = ""                      # image file stem, used to name per-frame outputs
+    gt_semantic: np.ndarray | None = None   # cross-view-consistent ground truth, when present
+    gt_instance: np.ndarray | None = None
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth.shape[1])
+
+    @property
+    def w2c(self) -> np.ndarray:
+        return np.linalg.inv(self.c2w)
+
+
+@dataclass
+class ClassInfo:
+    id: int
+    name: str
+    isthing: bool
+
+
+@dataclass
+class FrameSequence(Sequence):
+    """A lazily loaded sequence of frames: `len(seq)`, `seq[i]` -> Frame (read from disk on access).
+
+    `loader(i)` reads frame i. `classes` is the class table (COCO panoptic style, may be empty).
+    `root` is the folder it came from; `layout` names the detected layout.
+    """
+
+    loader: Callable[[int], Frame]
+    count: int
+    classes: list[ClassInfo] = field(default_factory=list)
+    root: str = ""
+    layout: str = ""
+    names: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(self.count))]
+        if i < 0:
+            i += self.count
+        if not 0 <= i < self.count:
+            raise IndexError(f"frame index {i} out of range (0..{self.count - 1})")
+        return self.loader(i)
+
+    def class_by_id(self) -> dict[int, ClassInfo]:
+        return {c.id: c for c in self.classes}

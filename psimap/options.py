@@ -1,0 +1,78 @@
+"""Options of every `psimap` command: one dataclass per command, defaults and help text in one place.
+
+This module must stay light (stdlib only): `psimap --help` builds its parser from it.
+Positional arguments are fields with ``metadata={"positional": True}``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+def opt(default, help: str, **extra):
+    """A dataclass field carrying its CLI help text."""
+    return field(default=default, metadata={"help": help, **extra})
+
+
+def pos(help: str, **extra):
+    """A required positional CLI argument."""
+    return field(default=None, metadata={"help": help, "positional": True, **extra})
+
+
+@dataclass
+class GenerateOptions:
+    out: str = pos("output folder for the synthetic scene (scene format of DESIGN.md)")
+    seed: int = opt(0, "random seed: the same seed gives the same scene")
+    frames: int = opt(60, "number of camera frames")
+    width: int = opt(160, "image width in pixels")
+    height: int = opt(120, "image height in pixels")
+    objects: int = opt(0, "number of objects (0 = random in 5..15)")
+    noise: float = opt(0.15, "pseudo-label noise rate (merges, splits, misses, flips), 0..1")
+    lidar: bool = opt(False, "also write a LiDAR sweep with intensity")
+    pose_noise: float = opt(0.0, "std of pose noise (metres / radians) applied to the written poses")
+
+
+@dataclass
+class EvalOptions:
+    pred: str = pos("scene.ckpt, a mesh file (.ply/.obj/.glb) or a folder of predicted label PNGs")
+    data: str = pos("scene folder with ground truth under gt/")
+    json: bool = opt(False, "print the metrics as JSON")
+    threshold: float = opt(0.05, "distance threshold for precision / recall / F1, metres")
+    samples: int = opt(200_000, "points sampled on each mesh")
+    seed: int = opt(0, "seed for the surface sampling")
+
+
+@dataclass
+class DemoOptions:
+    out: str = opt("psimap_demo", "output folder")
+    seed: int = opt(0, "random seed")
+
+
+@dataclass
+class TrainOptions:
+    data: str = pos("scene folder (scene format, ScanNet, Replica or 7-Scenes layout)")
+    out: str = opt("scene.ckpt", "checkpoint to write")
+    iters: int = opt(0, "training iterations (0 = the config default)")
+    seed: int = opt(0, "random seed")
+    resume: str = opt("", "checkpoint to resume from")
+
+
+@dataclass
+class MeshOptions:
+    ckpt: str = pos("trained scene checkpoint")
+    out: str = opt("mesh.ply", "mesh file to write")
+
+
+@dataclass
+class ExportOptions:
+    ckpt: str = pos("trained scene checkpoint")
+    format: str = opt("mjcf", "output format", choices=["usd", "mjcf", "glb"])
+    out: str = opt("export", "output folder")
+    completion: str = opt("auto", "object completion: auto or none", choices=["auto", "none"])
+    no_check: bool = opt(False, "skip the MuJoCo simulation check")
+
+
+@dataclass
+class LabelsOptions:
+    ckpt: str = pos("trained scene checkpoint")
+    data: str = pos("scene folder whose cameras to render")
+    out: str = opt("labels", "output folder (COCO panoptic)")
