@@ -1,0 +1,609 @@
+"""The psimap scene folder (DESIGN.md "Scene format"): writer, lazy reader, ground truth, labeled PLY.
+
+Layout (nerfstudio style, poses OpenGL on disk, OpenCV in memory)::
+
+    transforms.json   images/<stem>.png   depth/<stem>.png (uint16)   semantic/ instance/ (uint16)
+    lidar/<stem>.npy  gt/mesh.ply (per-face `instance`, `semantic`)  gt/instance/ gt/semantic/
+    gt/objects/<id>.ply   gt/instances.json
+
+The image helpers here (`read_rgb`, `read_depth_png`, `read_label_png`) are shared with the
+real-data loaders in `psimap.data.loaders`; they turn every malformed file into a PsimapError that
+names it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from psimap import PsimapError
+from psimap.data.frames import ClassInfo, Frame, FrameSequence
+from psimap.io_utils import atomic_dir, atomic_path
+
+# OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+TRANSFORMS = "transforms.json"
+_UINT16_MAX = 65535
+
+
+# --------------------------------------------------------------------------------------------------
+# image I/O
+
+
+def _open_image(path: Path):
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise PsimapError(f"missing file: {path}")
+    try:
+        img = Image.open(path)
+        img.load()
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        raise PsimapError(f"cannot read image {path}: {e}") from None
+    return img
+
+
+def read_rgb(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Colour image -> [H, W, 3] float32 in [0, 1]. `size` (W, H): resize (bilinear) to it."""
+    from PIL import Image
+
+    img = _open_image(Path(path))
+    if img.mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+        raise PsimapError(f"colour image {path} is not 8-bit RGB (mode {img.mode})")
+    img = img.convert("RGB")
+    if size is not None and img.size != tuple(size):
+        img = img.resize(tuple(size), Image.BILINEAR)
+    return np.asarray(img, dtype=np.float32) / 255.0
+
+
+def read_depth_png(path: str | os.PathLike, scale: float, invalid: tuple[int, ...] = (0,)) -> np.ndarray:
+    """16-bit depth PNG -> [H, W] float32 metres (value * scale); raw values in `invalid` -> 0."""
+    path = Path(path)
+    img = _open_image(path)
+    if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+        raise PsimapError(f"depth image {path} must be a 16-bit single-channel PNG, got mode {img.mode!r}"
+                          f" (8-bit depth would lose all precision)")
+    raw = np.asarray(img)
+    if raw.ndim != 2:
+        raise PsimapError(f"depth image {path} must have one channel, got shape {raw.shape}")
+    raw = raw.astype(np.int64)
+    depth = (raw * float(scale)).astype(np.float32)
+    bad = np.isin(raw, invalid) | (raw < 0)
+    depth[bad] = 0.0
+    return depth
+
+
+def read_label_png(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Label image (8- or 16-bit, one channel) -> [H, W] uint16. `size` (W, H): nearest resize."""
+    from PIL import Image
+
+    path = Path(path)
+    img = _open_image(path)
+    if img.mode not in ("L", "P", "I;16", "I;16B", "I;16L", "I"):
+        raise PsimapError(f"label image {path} must be a single-channel 8/16-bit PNG, got mode {img.mode!r}")
+    if size is not None and img.size != tuple(size):
+        # Labels are ids: never interpolate them.
+        img = img.resize(tuple(size), Image.NEAREST)
+    lab = np.asarray(img)
+    if lab.min(initial=0) < 0 or lab.max(initial=0) > _UINT16_MAX:
+        raise PsimapError(f"label image {path} has ids outside 0..65535")
+    return lab.astype(np.uint16)
+
+
+def _write_png(path: Path, arr: np.ndarray) -> None:
+    from PIL import Image
+
+    # Low zlib level: writing speed matters to the synthetic generator, size barely changes.
+    Image.fromarray(arr).save(path, format="PNG", compress_level=1)
+
+
+def _check_size(path, arr: np.ndarray, hw: tuple[int, int], what: str) -> None:
+    if tuple(arr.shape[:2]) != tuple(hw):
+        raise PsimapError(f"{what} {path} is {arr.shape[1]}x{arr.shape[0]} but the depth/camera size is "
+                          f"{hw[1]}x{hw[0]}")
+
+
+def check_pose(c2w: np.ndarray, source: str) -> np.ndarray:
+    """Validate a camera-to-world matrix: [4, 4], finite, rotation orthonormal. Returns float64."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if c2w.shape != (4, 4):
+        raise PsimapError(f"pose in {source} must be a 4x4 matrix, got shape {c2w.shape}")
+    if not np.all(np.isfinite(c2w)):
+        raise PsimapError(f"pose in {source} has non-finite values (inf/nan)")
+    R = c2w[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or abs(np.linalg.det(R) - 1.0) > 1e-3:
+        raise PsimapError(f"pose in {source} is not a rigid transform (rotation block not orthonormal)")
+    return c2w
+
+
+# --------------------------------------------------------------------------------------------------
+# labeled PLY (trimesh drops unknown per-face properties on export, so this is hand-written)
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+@dataclass
+class PlyData:
+    """Raw PLY contents: vertices [V, 3] float64, faces [F, 3] int64 (triangles; may be empty),
+    vertex_props / face_props: other per-element properties by name ([V] / [F] arrays)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    vertex_props: dict[str, np.ndarray] = field(default_factory=dict)
+    face_props: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def write_labeled_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
+                      face_props: dict[str, np.ndarray] | None = None,
+                      vertex_colors: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY with int32 per-face properties (e.g. `instance`, `semantic`).
+
+    vertices: [V, 3] float; faces: [F, 3] int; face_props: name -> [F] int;
+    vertex_colors: [V, 3|4] uint8 or None. Written atomically.
+    """
+    vertices = np.asarray(vertices, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    face_props = dict(face_props or {})
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise PsimapError(f"PLY {path}: vertices must be [V, 3], got {vertices.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise PsimapError(f"PLY {path}: face indices out of range 0..{len(vertices) - 1}")
+    vfields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if vertex_colors is not None:
+        vertex_colors = np.asarray(vertex_colors)
+        if vertex_colors.dtype != np.uint8:
+            vertex_colors = np.clip(np.round(vertex_colors * (255 if vertex_colors.max(initial=0) <= 1 else 1)),
+                                    0, 255).astype(np.uint8)
+        names = ["red", "green", "blue", "alpha"][: vertex_colors.shape[1]]
+        vfields += [(n, "u1") for n in names]
+    vrec = np.empty(len(vertices), dtype=vfields)
+    vrec["x"], vrec["y"], vrec["z"] = vertices.T
+    if vertex_colors is not None:
+        for k, n in enumerate(names):
+            vrec[n] = vertex_colors[:, k]
+    ffields = [("n", "u1"), ("idx", "<i4", (3,))] + [(n, "<i4") for n in face_props]
+    frec = np.empty(len(faces), dtype=ffields)
+    frec["n"] = 3
+    frec["idx"] = faces
+    for n, v in face_props.items():
+        v = np.asarray(v).reshape(-1)
+        if len(v) != len(faces):
+            raise PsimapError(f"PLY {path}: face property {n!r} has {len(v)} values for {len(faces)} faces")
+        frec[n] = v
+    header = ["ply", "format binary_little_endian 1.0", "comment written by psimap",
+              f"element vertex {len(vertices)}"]
+    header += [f"property {'float' if t == '<f4' else 'uchar'} {n}" for n, t in vfields]
+    header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    header += [f"property int {n}" for n in face_props]
+    header += ["end_header"]
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vrec.tobytes())
+        fh.write(frec.tobytes())
+
+
+def read_ply(path: str | os.PathLike) -> PlyData:
+    """Read a PLY (ascii or binary, either endianness) with any scalar vertex/face properties.
+
+    Faces must be triangles (the only kind psimap writes); other elements are skipped.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PsimapError(f"missing file: {path}")
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise PsimapError(f"{path} is not a PLY file (no 'ply' magic / end_header)")
+    nl = data.find(b"\n", end)
+    body = data[nl + 1:]
+    lines = data[:end].decode("ascii", "replace").splitlines()
+    fmt = None
+    elements: list[list] = []  # [name, count, [(prop name, dtype | ("list", count dtype, item dtype))]]
+    for line in lines[1:]:
+        tok = line.split()
+        if not tok or tok[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if tok[0] == "format":
+                fmt = tok[1]
+            elif tok[0] == "element":
+                elements.append([tok[1], int(tok[2]), []])
+            elif tok[0] == "property":
+                if tok[1] == "list":
+                    elements[-1][2].append((tok[4], ("list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]])))
+                else:
+                    elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
+        except (IndexError, KeyError, ValueError):
+            raise PsimapError(f"{path}: malformed PLY header line {line!r}") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise PsimapError(f"{path}: unsupported PLY format {fmt!r}")
+    endian = ">" if fmt == "binary_big_endian" else "<"
+    parsed: dict[str, dict[str, np.ndarray]] = {}
+    try:
+        if fmt == "ascii":
+            parsed = _read_ply_ascii(body, elements)
+        else:
+            parsed = _read_ply_binary(body, elements, endian)
+    except (ValueError, IndexError) as e:
+        raise PsimapError(f"{path}: truncated or malformed PLY body ({e})") from None
+    vert = parsed.get("vertex", {})
+    if not all(k in vert for k in "xyz"):
+        raise PsimapError(f"{path}: PLY has no vertex x/y/z")
+    vertices = np.stack([vert.pop(k).astype(np.float64) for k in "xyz"], axis=1)
+    face = parsed.get("face", {})
+    faces = np.zeros((0, 3), dtype=np.int64)
+    for key in ("vertex_indices", "vertex_index"):
+        if key in face:
+            faces = face.pop(key).astype(np.int64)
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise PsimapError(f"{path}: face indices out of range")
+    return PlyData(vertices, faces, vert, face)
+
+
+def _read_ply_binary(body: bytes, elements, endian: str) -> dict:
+    out, off = {}, 0
+    for name, count, props in elements:
+        if any(isinstance(t, tuple) for _, t in props):
+            # Fast path: assume all lists hold 3 items (triangles) and check that assumption.
+            fields = []
+            for pname, t in props:
+                if isinstance(t, tuple):
+                    fields += [(pname + "#n", endian + t[1]), (pname, endian + t[2], (3,))]
+                else:
+                    fields.append((pname, endian + t))
+            dt = np.dtype(fields)
+            if off + dt.itemsize * count > len(body):
+                raise ValueError(f"element {name!r} runs past the end of the file")
+            rec = np.frombuffer(body, dtype=dt, count=count, offset=off)
+            for pname, t in props:
+                if isinstance(t, tuple) and count and not np.all(rec[pname + "#n"] == 3):
+                    raise ValueError(f"element {name!r} has non-triangle lists (only triangles supported)")
+            off += dt.itemsize * count
+        else:
+            dt = np.dtype([(pname, endian + t) for pname, t in props])
+            if off + dt.itemsize * count > len(body):
+                raise ValueError(f"element {name!r} runs past the end of the file")
+            rec = np.frombuffer(body, dtype=dt, count=count, offset=off)
+            off += dt.itemsize * count
+        out[name] = {pname: np.array(rec[pname]) for pname, _ in props}
+    return out
+
+
+def _read_ply_ascii(body: bytes, elements) -> dict:
+    rows = body.decode("ascii", "replace").splitlines()
+    out, r = {}, 0
+    for name, count, props in elements:
+        chunk = rows[r:r + count]
+        if len(chunk) < count:
+            raise ValueError(f"element {name!r} has {len(chunk)} of {count} rows")
+        r += count
+        cols: dict[str, list] = {p: [] for p, _ in props}
+        for row in chunk:
+            tok = row.split()
+            i = 0
+            for pname, t in props:
+                if isinstance(t, tuple):
+                    n = int(tok[i])
+                    if n != 3:
+                        raise ValueError(f"element {name!r} has non-triangle lists")
+                    cols[pname].append([float(x) for x in tok[i + 1:i + 1 + n]])
+                    i += 1 + n
+                else:
+                    cols[pname].append(float(tok[i]))
+                    i += 1
+        out[name] = {p: np.asarray(cols[p], dtype=(t[2] if isinstance(t, tuple) else t)).reshape(
+            (count, 3) if isinstance(t, tuple) else (count,)) for p, t in props}
+    return out
+
+
+def read_labeled_mesh(path: str | os.PathLike):
+    """Labeled PLY -> (trimesh.Trimesh with the file's face order, {prop name: [F] int64})."""
+    import trimesh
+
+    ply = read_ply(path)
+    colors = None
+    if all(k in ply.vertex_props for k in ("red", "green", "blue")):
+        colors = np.stack([ply.vertex_props[k] for k in ("red", "green", "blue")], axis=1).astype(np.uint8)
+    # process=False keeps faces and their order so face labels stay aligned.
+    mesh = trimesh.Trimesh(ply.vertices, ply.faces, vertex_colors=colors, process=False)
+    props = {k: np.asarray(v).astype(np.int64) for k, v in ply.face_props.items()}
+    return mesh, props
+
+
+# --------------------------------------------------------------------------------------------------
+# writer
+
+
+def _frame_stem(frame: Frame, i: int) -> str:
+    stem = frame.name or f"frame_{i:05d}"
+    if any(c in stem for c in "/\\") or stem in (".", ".."):
+        raise PsimapError(f"frame {i}: name {stem!r} cannot be used as a file name")
+    return stem
+
+
+def _as_label(arr, what: str, hw) -> np.ndarray:
+    arr = np.asarray(arr)
+    if arr.shape != tuple(hw):
+        raise PsimapError(f"{what}: shape {arr.shape} does not match the depth size {tuple(hw)}")
+    if arr.size and (arr.min() < 0 or arr.max() > _UINT16_MAX):
+        raise PsimapError(f"{what}: ids must lie in 0..65535")
+    return arr.astype(np.uint16)
+
+
+def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[ClassInfo], *,
+                depth_unit_scale_factor: float = 0.001, gt_mesh=None,
+                gt_face_instance: np.ndarray | None = None, gt_face_semantic: np.ndarray | None = None,
+                gt_objects: dict | None = None, gt_instances: list[dict] | None = None) -> Path:
+    """Write frames (+ optional ground truth) as a psimap scene folder, atomically.
+
+    frames: Frame list (rgb [H,W,3] in [0,1], depth [H,W] metres, K [3,3], c2w [4,4] OpenCV, optional
+    semantic / instance / gt_semantic / gt_instance [H,W] and lidar [N,4]). All frames share one
+    image size; intrinsics that differ from the first frame's are written per frame.
+    gt_mesh: trimesh.Trimesh; gt_face_instance / gt_face_semantic: [F] int; gt_objects: {instance id:
+    trimesh}; gt_instances: [{"id", "semantic", "name"}]. Depth is quantised to
+    `depth_unit_scale_factor` metres; non-finite or negative depth is written as invalid (0).
+    Returns the folder path.
+    """
+    out_dir = Path(out_dir)
+    if not frames:
+        raise PsimapError("write_scene: no frames to write")
+    scale = float(depth_unit_scale_factor)
+    if not (scale > 0 and math.isfinite(scale)):
+        raise PsimapError(f"write_scene: depth_unit_scale_factor must be > 0, got {depth_unit_scale_factor}")
+    h, w = frames[0].depth.shape[:2]
+    K0 = np.asarray(frames[0].K, dtype=np.float64)
+    stems = [_frame_stem(f, i) for i, f in enumerate(frames)]
+    if len(set(stems)) != len(stems):
+        raise PsimapError("write_scene: frame names must be unique")
+    meta = {
+        "camera_model": "OPENCV",
+        "fl_x": float(K0[0, 0]), "fl_y": float(K0[1, 1]), "cx": float(K0[0, 2]), "cy": float(K0[1, 2]),
+        "w": int(w), "h": int(h), "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "depth_unit_scale_factor": scale,
+        "classes": [{"id": int(c.id), "name": str(c.name), "isthing": bool(c.isthing)} for c in classes],
+        "frames": [],
+    }
+    if any(c.id == 0 for c in classes):
+        raise PsimapError("write_scene: class id 0 is reserved for void / no label")
+
+    with atomic_dir(out_dir) as tmp:
+        for sub in ("images", "depth"):
+            (tmp / sub).mkdir()
+        for i, (f, stem) in enumerate(zip(frames, stems)):
+            what = f"frame {i} ({stem})"
+            depth = np.asarray(f.depth, dtype=np.float64)
+            if depth.shape != (h, w):
+                raise PsimapError(f"write_scene: {what} depth is {depth.shape}, expected {(h, w)}")
+            rgb = np.asarray(f.rgb, dtype=np.float32)
+            if rgb.shape != (h, w, 3):
+                raise PsimapError(f"write_scene: {what} rgb is {rgb.shape}, expected {(h, w, 3)}")
+            K = np.asarray(f.K, dtype=np.float64)
+            if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+                raise PsimapError(f"write_scene: {what} K must be a finite 3x3 matrix")
+            c2w = check_pose(f.c2w, f"write_scene {what}")
+            rgb8 = np.round(np.clip(np.nan_to_num(rgb), 0.0, 1.0) * 255.0).astype(np.uint8)
+            _write_png(tmp / "images" / f"{stem}.png", rgb8)
+            q = np.where(np.isfinite(depth) & (depth > 0), np.round(depth / scale), 0.0)
+            if q.max(initial=0) > _UINT16_MAX:
+                raise PsimapError(f"write_scene: {what} depth {depth[np.isfinite(depth)].max():.3f} m exceeds "
+                                  f"the uint16 range at depth_unit_scale_factor={scale}; use a larger factor")
+            _write_png(tmp / "depth" / f"{stem}.png", q.astype(np.uint16))
+            entry = {"file_path": f"images/{stem}.png", "depth_file_path": f"depth/{stem}.png",
+                     "transform_matrix": (c2w @ GL_TO_CV).tolist()}
+            if not np.allclose(K, K0, rtol=0, atol=1e-9):
+                entry.update(fl_x=float(K[0, 0]), fl_y=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]))
+            for key, arr, sub in (("semantic_file_path", f.semantic, "semantic"),
+                                  ("instance_file_path", f.instance, "instance"),
+                                  (None, f.gt_semantic, "gt/semantic"),
+                                  (None, f.gt_instance, "gt/instance")):
+                if arr is None:
+                    continue
+                (tmp / sub).mkdir(parents=True, exist_ok=True)
+                _write_png(tmp / sub / f"{stem}.png", _as_label(arr, f"write_scene: {what} {sub}", (h, w)))
+                if key:
+                    entry[key] = f"{sub}/{stem}.png"
+            if f.lidar is not None:
+                pts = np.asarray(f.lidar, dtype=np.float32)
+                if pts.ndim != 2 or pts.shape[1] != 4:
+                    raise PsimapError(f"write_scene: {what} lidar must be [N, 4], got {pts.shape}")
+                (tmp / "lidar").mkdir(exist_ok=True)
+                np.save(tmp / "lidar" / f"{stem}.npy", pts)
+                entry["lidar_file_path"] = f"lidar/{stem}.npy"
+            meta["frames"].append(entry)
+        (tmp / TRANSFORMS).write_text(json.dumps(meta, indent=1))
+        _write_gt(tmp / "gt", gt_mesh, gt_face_instance, gt_face_semantic, gt_objects, gt_instances)
+    return out_dir
+
+
+def _write_gt(gt_dir: Path, mesh, face_instance, face_semantic, objects, instances) -> None:
+    if mesh is not None:
+        nf = len(mesh.faces)
+        props = {}
+        for name, arr in (("instance", face_instance), ("semantic", face_semantic)):
+            arr = np.zeros(nf, dtype=np.int64) if arr is None else np.asarray(arr).reshape(-1)
+            if len(arr) != nf:
+                raise PsimapError(f"write_scene: gt face {name} labels have {len(arr)} values for {nf} faces")
+            props[name] = arr
+        colors = None
+        vc = getattr(getattr(mesh, "visual", None), "vertex_colors", None)
+        if getattr(mesh.visual, "kind", None) == "vertex" and vc is not None and len(vc) == len(mesh.vertices):
+            colors = np.asarray(vc)[:, :3]
+        gt_dir.mkdir(parents=True, exist_ok=True)
+        write_labeled_ply(gt_dir / "mesh.ply", mesh.vertices, mesh.faces, props, vertex_colors=colors)
+    elif face_instance is not None or face_semantic is not None:
+        raise PsimapError("write_scene: gt face labels given without gt_mesh")
+    if objects:
+        (gt_dir / "objects").mkdir(parents=True, exist_ok=True)
+        for oid, obj in objects.items():
+            obj.export(gt_dir / "objects" / f"{int(oid)}.ply")
+    if instances is not None:
+        gt_dir.mkdir(parents=True, exist_ok=True)
+        rows = [{"id": int(r["id"]), "semantic": int(r["semantic"]), "name": str(r.get("name", ""))}
+                for r in instances]
+        (gt_dir / "instances.json").write_text(json.dumps(rows, indent=1))
+
+
+# --------------------------------------------------------------------------------------------------
+# reader
+
+
+def read_scene(root: str | os.PathLike) -> FrameSequence:
+    """Open a scene folder (or its transforms.json) as a lazily loaded FrameSequence.
+
+    transforms.json, poses and file existence are checked up front (cheap); images are read when a
+    frame is accessed. Poses are converted OpenGL -> OpenCV.
+    """
+    root = Path(root)
+    tf_path = root if root.is_file() else root / TRANSFORMS
+    root = tf_path.parent
+    if not tf_path.is_file():
+        raise PsimapError(f"missing file: {tf_path}")
+    try:
+        meta = json.loads(tf_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise PsimapError(f"{tf_path} is not valid JSON: {e}") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise PsimapError(f"{tf_path} has no 'frames' list (not a nerfstudio transforms.json)")
+    model = meta.get("camera_model", "OPENCV")
+    if model not in ("OPENCV", "PINHOLE"):
+        raise PsimapError(f"{tf_path}: camera_model {model!r} is not supported (OPENCV / PINHOLE only)")
+    if any(abs(float(meta.get(k, 0.0) or 0.0)) > 1e-9 for k in ("k1", "k2", "k3", "k4", "p1", "p2")):
+        print(f"warning: {tf_path}: lens distortion coefficients are ignored (images assumed undistorted)",
+              file=sys.stderr)
+    scale = float(meta.get("depth_unit_scale_factor", 0.001))
+    if not (scale > 0 and math.isfinite(scale)):
+        raise PsimapError(f"{tf_path}: depth_unit_scale_factor must be > 0, got {scale}")
+    try:
+        classes = [ClassInfo(int(c["id"]), str(c["name"]), bool(c.get("isthing", True)))
+                   for c in meta.get("classes", [])]
+    except (KeyError, TypeError, ValueError):
+        raise PsimapError(f"{tf_path}: 'classes' entries need 'id' and 'name'") from None
+
+    records = []
+    for i, fr in enumerate(meta["frames"]):
+        src = f"{tf_path} frame {i}"
+        try:
+            fl_x = float(fr.get("fl_x", meta.get("fl_x")))
+            fl_y = float(fr.get("fl_y", meta.get("fl_y", fl_x)))
+            cx, cy = float(fr.get("cx", meta.get("cx"))), float(fr.get("cy", meta.get("cy")))
+            w, h = int(fr.get("w", meta.get("w"))), int(fr.get("h", meta.get("h")))
+            file_path = fr["file_path"]
+            depth_path = fr["depth_file_path"]
+            c2w_gl = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise PsimapError(f"{src}: needs file_path, depth_file_path, transform_matrix and intrinsics "
+                              f"(fl_x, fl_y, cx, cy, w, h)") from None
+        K = np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
+        if not np.all(np.isfinite(K)) or fl_x <= 0 or fl_y <= 0 or w <= 0 or h <= 0:
+            raise PsimapError(f"{src}: invalid intrinsics")
+        c2w = check_pose(c2w_gl, f"{src} ({file_path})") @ GL_TO_CV
+        paths = {"rgb": root / file_path, "depth": root / depth_path}
+        for key, meta_key in (("semantic", "semantic_file_path"), ("instance", "instance_file_path"),
+                              ("lidar", "lidar_file_path")):
+            if fr.get(meta_key):
+                paths[key] = root / fr[meta_key]
+        stem = Path(file_path).stem
+        for key in ("semantic", "instance"):
+            p = root / "gt" / key / f"{stem}.png"
+            if p.is_file():
+                paths["gt_" + key] = p
+        for p in paths.values():
+            if not p.is_file():
+                raise PsimapError(f"missing file: {p} (listed in {tf_path})")
+        records.append((paths, K, c2w, (h, w), stem))
+
+    def load_frame(i: int) -> Frame:
+        paths, K, c2w, hw, stem = records[i]
+        depth = read_depth_png(paths["depth"], scale)
+        _check_size(paths["depth"], depth, hw, "depth image")
+        rgb = read_rgb(paths["rgb"])
+        _check_size(paths["rgb"], rgb, hw, "colour image")
+        labels = {}
+        for key in ("semantic", "instance", "gt_semantic", "gt_instance"):
+            if key in paths:
+                labels[key] = read_label_png(paths[key])
+                _check_size(paths[key], labels[key], hw, f"{key} image")
+        lidar = read_lidar(paths["lidar"]) if "lidar" in paths else None
+        return Frame(rgb=rgb, depth=depth, K=K.copy(), c2w=c2w.copy(), lidar=lidar, name=stem, **labels)
+
+    return FrameSequence(loader=load_frame, count=len(records), classes=classes, root=str(root),
+                         layout="psimap", names=[r[4] for r in records])
+
+
+def read_lidar(path: str | os.PathLike) -> np.ndarray:
+    """LiDAR points -> [N, 4] float32 (x, y, z world, intensity). .npy (N x 4 or N x 3) or .ply
+    (vertex x, y, z and an `intensity` / `reflectance` / `scalar_intensity` property; 0 if absent)."""
+    path = Path(path)
+    if not path.is_file():
+        raise PsimapError(f"missing file: {path}")
+    if path.suffix.lower() == ".npy":
+        try:
+            pts = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise PsimapError(f"cannot read LiDAR file {path}: {e}") from None
+    elif path.suffix.lower() == ".ply":
+        ply = read_ply(path)
+        inten = next((ply.vertex_props[k] for k in ("intensity", "reflectance", "scalar_intensity")
+                      if k in ply.vertex_props), np.zeros(len(ply.vertices)))
+        pts = np.column_stack([ply.vertices, inten])
+    else:
+        raise PsimapError(f"LiDAR file {path}: unsupported extension (use .npy or .ply)")
+    if pts.ndim == 2 and pts.shape[1] == 3:
+        pts = np.column_stack([pts, np.zeros(len(pts))])
+    if pts.ndim != 2 or pts.shape[1] != 4:
+        raise PsimapError(f"LiDAR file {path} must hold N x 4 (x, y, z, intensity), got shape {pts.shape}")
+    pts = pts.astype(np.float32)
+    if not np.all(np.isfinite(pts)):
+        raise PsimapError(f"LiDAR file {path} has non-finite values")
+    return pts
+
+
+# --------------------------------------------------------------------------------------------------
+# ground truth
+
+
+@dataclass
+class GroundTruth:
+    """What a scene folder's gt/ holds. mesh: trimesh.Trimesh or None; face_instance / face_semantic:
+    [F] int64 (None without a mesh); objects: {instance id: path of its complete mesh};
+    instances: [{"id", "semantic", "name"}]."""
+
+    mesh: object = None
+    face_instance: np.ndarray | None = None
+    face_semantic: np.ndarray | None = None
+    objects: dict[int, Path] = field(default_factory=dict)
+    instances: list[dict] = field(default_factory=list)
+
+
+def read_gt(root: str | os.PathLike) -> GroundTruth:
+    """Read `root/gt/` (missing parts stay None / empty)."""
+    gt_dir = Path(root) / "gt"
+    gt = GroundTruth()
+    if (gt_dir / "mesh.ply").is_file():
+        mesh, props = read_labeled_mesh(gt_dir / "mesh.ply")
+        nf = len(mesh.faces)
+        gt.mesh = mesh
+        gt.face_instance = props.get("instance", np.zeros(nf, dtype=np.int64))
+        gt.face_semantic = props.get("semantic", np.zeros(nf, dtype=np.int64))
+    if (gt_dir / "objects").is_dir():
+        for p in sorted((gt_dir / "objects").iterdir()):
+            if p.suffix.lower() in (".ply", ".obj", ".glb", ".stl") and p.stem.lstrip("-").isdigit():
+                gt.objects[int(p.stem)] = p
+    if (gt_dir / "instances.json").is_file():
+        try:
+            rows = json.loads((gt_dir / "instances.json").read_text())
+            gt.instances = [{"id": int(r["id"]), "semantic": int(r["semantic"]), "name": str(r.get("name", ""))}
+                            for r in rows]
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            raise PsimapError(f"{gt_dir / 'instances.json'}: expected a list of {{id, semantic, name}}") from None
+    return gt
