@@ -1,1 +1,10 @@
-"""psimap/render"""
+"""psimap.render: differentiable 2D Gaussian surfel rasterizer (math in SPEC.md).
+
+`rasterize(...)` is the entry point; `project_surfels` is stage 1, shared by every backend.
+"""
+from __future__ import annotations
+
+from psimap.render.api import RenderOutput, rasterize
+from psimap.render.project import Projected, project_surfels
+
+__all__ = ["rasterize", "RenderOutput", "project_surfels", "Projected"]

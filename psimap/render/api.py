@@ -1,0 +1,119 @@
+"""The public entry point `rasterize(...)`: validate inputs, project (stage 1), dispatch a backend."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from psimap import PsimapError
+
+BACKENDS = ("reference", "native", "auto")
+TILE_MODES = ("precise", "circle")
+
+
+@dataclass
+class RenderOutput:
+    """Rendered maps of one view (H x W); every tensor is differentiable.
+
+    rgb [H, W, 3], alpha [H, W], depth [H, W] (expected hit depth, normalised by alpha),
+    median_depth [H, W], normal [H, W, 3] (camera frame, camera-facing, alpha-weighted sum),
+    distortion [H, W], features [H, W, C]; stats: tile_pairs, pairs_per_tile, evaluated, culled, ...
+    """
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    median_depth: torch.Tensor
+    normal: torch.Tensor
+    distortion: torch.Tensor
+    features: torch.Tensor
+    stats: dict = field(default_factory=dict)
+
+
+def _check(name: str, t, shape: tuple, n: int | None = None) -> None:
+    """Raise ValueError unless t is a tensor of `shape` (-1 = N) with only finite values."""
+    if not isinstance(t, torch.Tensor):
+        raise ValueError(f"rasterize: {name} must be a torch.Tensor, got {type(t).__name__}")
+    want = tuple(n if s == -1 else s for s in shape)
+    if len(t.shape) != len(want) or any(s is not None and s != a for s, a in zip(want, t.shape)):
+        pretty = "[" + ", ".join("N" if s == -1 else ("C" if s is None else str(s)) for s in shape) + "]"
+        raise ValueError(f"rasterize: {name} must have shape {pretty} (N = {n}), got {list(t.shape)}")
+    if not t.is_floating_point():
+        raise ValueError(f"rasterize: {name} must be a floating-point tensor, got {t.dtype}")
+    if t.numel() and not bool(torch.isfinite(t).all()):
+        bad = int((~torch.isfinite(t)).sum())
+        raise ValueError(f"rasterize: {name} contains {bad} NaN/inf value(s)")
+
+
+def _native_available() -> bool:
+    try:
+        from psimap.render.native import rasterize_native  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
+              features=None, topk: int | None = None, tiles: str = "precise",
+              backend: str = "reference", near: float = 0.2, far: float = 1000.0,
+              background=None) -> RenderOutput:
+    """Render N 2D Gaussian surfels into one camera (math: psimap/render/SPEC.md).
+
+    means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 2] (> 0), opacities [N] in (0, 1),
+    colors [N, 3], viewmat [4, 4] world-to-camera (OpenCV), K [3, 3], features [N, C] or None.
+    topk: features blend only the K largest-weight surfels per pixel (None = all).
+    tiles: "precise" (tight AABB) or "circle" (bounding circle, the baseline).
+    backend: "reference" (torch), "native" (C++), "auto" (native on CPU when built, else torch).
+    Non-finite inputs or wrong shapes raise ValueError. Everything is differentiable.
+    """
+    if not isinstance(means, torch.Tensor):
+        raise ValueError(f"rasterize: means must be a torch.Tensor, got {type(means).__name__}")
+    n = means.shape[0] if means.dim() == 2 else None
+    _check("means", means, (-1, 3), n)
+    dtype, device = means.dtype, means.device
+    _check("quats", quats, (-1, 4), n)
+    _check("scales", scales, (-1, 2), n)
+    _check("opacities", opacities, (-1,), n)
+    _check("colors", colors, (-1, 3), n)
+    viewmat = torch.as_tensor(viewmat, dtype=dtype, device=device)
+    K = torch.as_tensor(K, dtype=dtype, device=device)
+    _check("viewmat", viewmat, (4, 4))
+    _check("K", K, (3, 3))
+    if features is not None:
+        _check("features", features, (-1, None), n)
+    if background is not None:
+        background = torch.as_tensor(background, dtype=dtype, device=device)
+        _check("background", background, (3,))
+    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors),
+                    ("features", features)):
+        if t is not None and (t.dtype != dtype or t.device != device):
+            raise ValueError(f"rasterize: {name} is {t.dtype} on {t.device} but means is {dtype} on {device}")
+    if int(width) != width or int(height) != height or width <= 0 or height <= 0:
+        raise ValueError(f"rasterize: width and height must be positive integers, got {width} x {height}")
+    width, height = int(width), int(height)
+    if not (0 < near < far) or not all(map(lambda v: v == v and abs(v) != float("inf"), (near, far))):
+        raise ValueError(f"rasterize: need 0 < near < far (finite), got near={near}, far={far}")
+    if topk is not None and (int(topk) != topk or topk < 1):
+        raise ValueError(f"rasterize: topk must be a positive integer or None, got {topk}")
+    if tiles not in TILE_MODES:
+        raise ValueError(f"rasterize: tiles must be one of {TILE_MODES}, got {tiles!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
+
+    from psimap.render.project import project_surfels
+
+    proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
+
+    use_native = backend == "native" or (backend == "auto" and device.type == "cpu" and _native_available())
+    if use_native:
+        try:
+            from psimap.render.native import rasterize_native
+        except Exception as exc:   # an unbuilt extension is the user's setup, not a bug
+            raise PsimapError(f"native renderer backend is not available ({exc}); "
+                              f"reinstall psimap to build it, or use backend='reference'") from exc
+        return rasterize_native(proj, opacities, colors, features, width, height, topk, tiles,
+                                near, far, background)
+    from psimap.render.reference import rasterize_reference
+
+    return rasterize_reference(proj, opacities, colors, features, width, height, topk=topk, tiles=tiles,
+                               near=near, far=far, background=background)
