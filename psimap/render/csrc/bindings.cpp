@@ -1,0 +1,201 @@
+// nanobind module psimap.render._native: contiguous float32 / int32 numpy buffers in and out (no
+// torch headers). Output buffers are allocated (and, in tests, poisoned) by the caller.
+#include <stdexcept>
+#include <string>
+
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/tuple.h>
+#include <omp.h>
+
+#include "rasterize.h"
+
+namespace nb = nanobind;
+using namespace psimap;
+
+template <typename T>
+using Array = nb::ndarray<T, nb::c_contig, nb::device::cpu>;
+
+namespace {
+
+template <typename T>
+T* checked(Array<T>& a, size_t expected, const char* name) {
+    if (a.size() != expected)
+        throw std::invalid_argument(std::string("psimap native: ") + name + " has " +
+                                    std::to_string(a.size()) + " elements, expected " +
+                                    std::to_string(expected));
+    return a.data();
+}
+
+template <typename T>
+nb::ndarray<nb::numpy, T, nb::ndim<1>> to_numpy(std::vector<T>&& v) {
+    auto* heap = new std::vector<T>(std::move(v));
+    nb::capsule owner(heap, [](void* p) noexcept { delete static_cast<std::vector<T>*>(p); });
+    size_t shape[1] = {heap->size()};
+    return nb::ndarray<nb::numpy, T, nb::ndim<1>>(heap->data(), 1, shape, owner);
+}
+
+struct Common {
+    SurfelInputs in;
+    TileBins bins;
+    RasterConfig cfg;
+};
+
+Common make_common(Array<const float>& T, Array<const float>& center,
+                   Array<const float>& depth_key, Array<const float>& normal,
+                   Array<const float>& opacity, Array<const float>& color,
+                   Array<const float>& feature, int channels, Array<const int32_t>& offsets,
+                   Array<const int32_t>& ids, int width, int height, int topk, float near,
+                   float far, Array<const float>& background) {
+    Common c;
+    const size_t n = opacity.size();
+    if (width <= 0 || height <= 0) throw std::invalid_argument("psimap native: empty image");
+    if (topk < 0 || topk > kMaxTopK)
+        throw std::invalid_argument("psimap native: topk must be in [0, " +
+                                    std::to_string(kMaxTopK) + "]");
+    if (channels < 0) throw std::invalid_argument("psimap native: negative channel count");
+    c.in.n = static_cast<int64_t>(n);
+    c.in.channels = channels;
+    c.in.T = checked(T, 9 * n, "T");
+    c.in.center = checked(center, 2 * n, "center");
+    c.in.depth_key = checked(depth_key, n, "depth_key");
+    c.in.normal = checked(normal, 3 * n, "normal_c");
+    c.in.opacity = opacity.data();
+    c.in.color = checked(color, 3 * n, "colors");
+    c.in.feature = checked(feature, static_cast<size_t>(channels) * n, "features");
+    c.bins.tiles_x = tiles_along(width);
+    c.bins.tiles_y = tiles_along(height);
+    const size_t tiles = static_cast<size_t>(c.bins.tiles_x) * c.bins.tiles_y;
+    c.bins.offsets = checked(offsets, tiles + 1, "tile offsets");
+    if (static_cast<size_t>(c.bins.offsets[tiles]) != ids.size())
+        throw std::invalid_argument("psimap native: tile offsets do not match tile ids");
+    c.bins.ids = ids.data();
+    for (size_t k = 0; k < ids.size(); ++k)
+        if (c.bins.ids[k] < 0 || static_cast<size_t>(c.bins.ids[k]) >= n)
+            throw std::invalid_argument("psimap native: tile id out of range");
+    c.cfg.width = width;
+    c.cfg.height = height;
+    c.cfg.topk = topk;
+    c.cfg.near = near;
+    c.cfg.far = far;
+    const float* b = checked(background, 3, "background");
+    for (int k = 0; k < 3; ++k) c.cfg.background[k] = b[k];
+    return c;
+}
+
+ForwardBuffers make_buffers(const Common& c, Array<float>& rgb, Array<float>& alpha,
+                            Array<float>& depth, Array<float>& median, Array<float>& normal,
+                            Array<float>& distortion, Array<float>& feature, Array<float>& t_final,
+                            Array<int32_t>& n_last, Array<int32_t>& median_pos,
+                            Array<float>& dist_sums, Array<int32_t>& topk_pos) {
+    const size_t px = static_cast<size_t>(c.cfg.width) * c.cfg.height;
+    ForwardBuffers b;
+    b.rgb = checked(rgb, 3 * px, "rgb");
+    b.alpha = checked(alpha, px, "alpha");
+    b.depth = checked(depth, px, "depth");
+    b.median = checked(median, px, "median_depth");
+    b.normal = checked(normal, 3 * px, "normal");
+    b.distortion = checked(distortion, px, "distortion");
+    b.feature = checked(feature, px * c.in.channels, "feature image");
+    b.t_final = checked(t_final, px, "t_final");
+    b.n_last = checked(n_last, px, "n_last");
+    b.median_pos = checked(median_pos, px, "median_pos");
+    b.dist_sums = checked(dist_sums, 3 * px, "dist_sums");
+    b.topk_pos = checked(topk_pos, px * c.cfg.topk, "topk_pos");
+    return b;
+}
+
+}  // namespace
+
+NB_MODULE(_native, m) {
+    m.doc() = "psimap native CPU surfel rasterizer (C++17 / OpenMP)";
+
+    m.def("set_num_threads", [](int n) { omp_set_num_threads(n < 1 ? 1 : n); }, nb::arg("n"));
+    m.def("get_num_threads", []() { return omp_get_max_threads(); });
+    m.attr("MAX_TOPK") = kMaxTopK;
+    m.attr("TILE") = kTile;
+
+    m.def(
+        "bin_tiles",
+        [](Array<const int32_t> boxes, Array<const uint8_t> valid, Array<const float> depth_key,
+           int width, int height) {
+            const size_t n = valid.size();
+            checked(boxes, 4 * n, "boxes");
+            checked(depth_key, n, "depth_key");
+            std::vector<int32_t> offsets, ids;
+            {
+                nb::gil_scoped_release release;
+                bin_tiles(boxes.data(), valid.data(), depth_key.data(), static_cast<int64_t>(n),
+                          width, height, offsets, ids);
+            }
+            return std::make_tuple(to_numpy(std::move(offsets)), to_numpy(std::move(ids)));
+        },
+        nb::arg("boxes"), nb::arg("valid"), nb::arg("depth_key"), nb::arg("width"),
+        nb::arg("height"),
+        "(tile offsets [tiles+1] int32, surfel ids [pairs] int32), each tile front to back.");
+
+    m.def(
+        "rasterize_forward",
+        [](Array<const float> T, Array<const float> center, Array<const float> depth_key,
+           Array<const float> normal, Array<const float> opacity, Array<const float> color,
+           Array<const float> feature, int channels, Array<const int32_t> offsets,
+           Array<const int32_t> ids, int width, int height, int topk, float near, float far,
+           Array<const float> background, Array<float> out_rgb, Array<float> out_alpha,
+           Array<float> out_depth, Array<float> out_median, Array<float> out_normal,
+           Array<float> out_distortion, Array<float> out_feature, Array<float> t_final,
+           Array<int32_t> n_last, Array<int32_t> median_pos, Array<float> dist_sums,
+           Array<int32_t> topk_pos) {
+            Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
+                                   offsets, ids, width, height, topk, near, far, background);
+            ForwardBuffers b = make_buffers(c, out_rgb, out_alpha, out_depth, out_median,
+                                            out_normal, out_distortion, out_feature, t_final,
+                                            n_last, median_pos, dist_sums, topk_pos);
+            nb::gil_scoped_release release;
+            return rasterize_forward(c.in, c.bins, c.cfg, b);
+        },
+        "Forward pass; writes every output pixel; returns the number of (pixel, surfel) evaluations.");
+
+    m.def(
+        "rasterize_backward",
+        [](Array<const float> T, Array<const float> center, Array<const float> depth_key,
+           Array<const float> normal, Array<const float> opacity, Array<const float> color,
+           Array<const float> feature, int channels, Array<const int32_t> offsets,
+           Array<const int32_t> ids, int width, int height, int topk, float near, float far,
+           Array<const float> background, Array<float> depth, Array<float> t_final,
+           Array<int32_t> n_last, Array<int32_t> median_pos, Array<float> dist_sums,
+           Array<int32_t> topk_pos, Array<const float> g_rgb, Array<const float> g_alpha,
+           Array<const float> g_depth, Array<const float> g_median, Array<const float> g_normal,
+           Array<const float> g_distortion, Array<const float> g_feature, Array<float> gT,
+           Array<float> g_center, Array<float> g_depth_key, Array<float> g_normal_c,
+           Array<float> g_opacity, Array<float> g_color, Array<float> g_feat) {
+            Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
+                                   offsets, ids, width, height, topk, near, far, background);
+            const size_t px = static_cast<size_t>(width) * height;
+            const size_t n = static_cast<size_t>(c.in.n);
+            ForwardBuffers s{};
+            s.depth = checked(depth, px, "depth");
+            s.t_final = checked(t_final, px, "t_final");
+            s.n_last = checked(n_last, px, "n_last");
+            s.median_pos = checked(median_pos, px, "median_pos");
+            s.dist_sums = checked(dist_sums, 3 * px, "dist_sums");
+            s.topk_pos = checked(topk_pos, px * topk, "topk_pos");
+            BackwardGrads g;
+            g.rgb = checked(g_rgb, 3 * px, "grad rgb");
+            g.alpha = checked(g_alpha, px, "grad alpha");
+            g.depth = checked(g_depth, px, "grad depth");
+            g.median = checked(g_median, px, "grad median_depth");
+            g.normal = checked(g_normal, 3 * px, "grad normal");
+            g.distortion = checked(g_distortion, px, "grad distortion");
+            g.feature = checked(g_feature, px * channels, "grad features");
+            g.T = checked(gT, 9 * n, "grad T");
+            g.center = checked(g_center, 2 * n, "grad center");
+            g.depth_key = checked(g_depth_key, n, "grad depth_key");
+            g.normal_c = checked(g_normal_c, 3 * n, "grad normal_c");
+            g.opacity = checked(g_opacity, n, "grad opacities");
+            g.color = checked(g_color, 3 * n, "grad colors");
+            g.feat = checked(g_feat, n * channels, "grad feature");
+            nb::gil_scoped_release release;
+            rasterize_backward(c.in, c.bins, c.cfg, s, g);
+        },
+        "Backward pass: writes dL/d(T, center, depth_key, normal_c, opacity, color, feature).");
+}

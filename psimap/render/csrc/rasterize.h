@@ -1,0 +1,89 @@
+// Native CPU surfel rasterizer: declarations shared by binning / forward / backward / bindings.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "surfel_math.h"
+
+namespace psimap {
+
+// Per-surfel stage-1 inputs (contiguous float32, N rows).
+struct SurfelInputs {
+    int64_t n = 0;
+    int channels = 0;              // C feature channels
+    const float* T = nullptr;      // [N, 9]
+    const float* center = nullptr; // [N, 2]
+    const float* depth_key = nullptr;  // [N]
+    const float* normal = nullptr; // [N, 3]
+    const float* opacity = nullptr;  // [N]
+    const float* color = nullptr;  // [N, 3]
+    const float* feature = nullptr;  // [N, C]
+};
+
+// Tiles in row-major order; surfels of tile t are ids[offsets[t] .. offsets[t+1]) front to back.
+struct TileBins {
+    int tiles_x = 0, tiles_y = 0;
+    const int32_t* offsets = nullptr;  // [tiles + 1]
+    const int32_t* ids = nullptr;      // [pairs]
+};
+
+inline int tiles_along(int pixels) { return (pixels + kTile - 1) / kTile; }
+
+struct RasterConfig {
+    int width = 0, height = 0;
+    int topk = 0;  // 0: blend features over every surfel
+    float near = 0.2f, far = 1000.0f;
+    float background[3] = {0.0f, 0.0f, 0.0f};
+};
+
+// Forward outputs [H, W, ...] and what the backward needs per pixel.
+struct ForwardBuffers {
+    float* rgb;          // [H, W, 3]
+    float* alpha;        // [H, W]
+    float* depth;        // [H, W]
+    float* median;       // [H, W]
+    float* normal;       // [H, W, 3]
+    float* distortion;   // [H, W]
+    float* feature;      // [H, W, C]
+    float* t_final;      // [H, W] final transmittance
+    int32_t* n_last;     // [H, W] tile-list position after the last blended surfel
+    int32_t* median_pos; // [H, W] tile-list position of the median surfel, -1 if none
+    float* dist_sums;    // [H, W, 3] sum w, sum w m, sum w m^2 (distortion totals)
+    int32_t* topk_pos;   // [H, W, K] selected tile-list positions, -1 padded (K = topk > 0)
+};
+
+struct BackwardGrads {
+    // dL/d outputs
+    const float* rgb;
+    const float* alpha;
+    const float* depth;
+    const float* median;
+    const float* normal;
+    const float* distortion;
+    const float* feature;
+    // dL/d surfel inputs (written, not accumulated)
+    float* T;          // [N, 9]
+    float* center;     // [N, 2]
+    float* depth_key;  // [N]
+    float* normal_c;   // [N, 3]
+    float* opacity;    // [N]
+    float* color;      // [N, 3]
+    float* feat;       // [N, C]
+};
+
+// Fills offsets [tiles + 1] and ids [pairs] (see TileBins).
+void bin_tiles(const int32_t* boxes, const uint8_t* valid, const float* depth_key, int64_t n,
+               int width, int height, std::vector<int32_t>& offsets, std::vector<int32_t>& ids);
+
+int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const RasterConfig& cfg,
+                          const ForwardBuffers& out);
+
+void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const RasterConfig& cfg,
+                        const ForwardBuffers& saved, const BackwardGrads& g);
+
+// Gathers tile `t`'s surfels into `params` (front to back).
+void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
+                 std::vector<SurfelParams>& params);
+
+}  // namespace psimap
