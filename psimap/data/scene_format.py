@@ -50,7 +50,8 @@ def _open_image(path: Path):
 
 
 def read_rgb(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Colour image -> [H, W, 3] float32 in [0, 1]. `size` (W, H): resize (bilinear) to it."""
+    """Colour image -> [H, W, 3] float32 in [0, 1]. `size` (W, H): resize to it (area average when
+    shrinking, so no aliasing; bilinear when enlarging)."""
     from PIL import Image
 
     img = _open_image(Path(path))
@@ -58,7 +59,8 @@ def read_rgb(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np
         raise PsimapError(f"colour image {path} is not 8-bit RGB (mode {img.mode})")
     img = img.convert("RGB")
     if size is not None and img.size != tuple(size):
-        img = img.resize(tuple(size), Image.BILINEAR)
+        shrink = size[0] <= img.size[0] and size[1] <= img.size[1]
+        img = img.resize(tuple(size), Image.BOX if shrink else Image.BILINEAR)
     return np.asarray(img, dtype=np.float32) / 255.0
 
 
