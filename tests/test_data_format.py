@@ -59,7 +59,7 @@ def test_round_trip(tmp_path):
     face_inst = np.arange(nf) % 7
     face_sem = (np.arange(nf) * 3) % 4
     objs = {4: trimesh.creation.box(extents=(1, 2, 3))}
-    insts = [{"id": 4, "semantic": 3, "name": "chair"}]
+    insts = [{"id": np.int64(4), "semantic": 3, "name": "chair", "support": np.int32(0)}]
     write_scene(tmp_path / "s", frames, CLASSES, gt_mesh=mesh, gt_face_instance=face_inst,
                 gt_face_semantic=face_sem, gt_objects=objs, gt_instances=insts)
     seq = load(tmp_path / "s")
@@ -91,7 +91,8 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(gt.mesh.faces, mesh.faces)
     assert set(gt.objects) == {4}
     assert abs(trimesh.load(gt.objects[4]).volume - 6.0) < 1e-6
-    assert gt.instances == insts
+    assert gt.instances == [{"id": 4, "semantic": 3, "name": "chair", "support": 0}]
+    assert all(type(v) in (int, str) for v in gt.instances[0].values())
 
 
 def test_pose_convention_on_disk(tmp_path):
@@ -103,6 +104,13 @@ def test_pose_convention_on_disk(tmp_path):
     fwd_cv = frames[0].c2w[:3, 2]                   # OpenCV forward = +z
     np.testing.assert_allclose(-gl[:3, 2], fwd_cv, atol=1e-12)
     np.testing.assert_allclose(gl @ GL_TO_CV, frames[0].c2w, atol=1e-12)
+    # lens distortion is not modelled: warn rather than silently mis-project
+    meta["k1"] = 0.1
+    (tmp_path / "s" / "transforms.json").write_text(json.dumps(meta))
+    with pytest.warns(UserWarning, match="distortion coefficients are ignored"):
+        load(tmp_path / "s")
+    meta["k1"] = 0.0
+    (tmp_path / "s" / "transforms.json").write_text(json.dumps(meta))
     f = load(tmp_path / "s" / "transforms.json")[0]   # the json file itself also loads
     assert f.semantic is None and f.instance is None and f.lidar is None and f.gt_instance is None
 
@@ -128,6 +136,14 @@ def test_write_is_atomic_and_rejects_bad_frames(tmp_path):
     assert d[1, 1] == 0 and d[1, 2] == 0
     assert np.abs(d - np.nan_to_num(frames[0].depth).clip(0)).max() <= 0.00005 + 1e-6
 
+    # replacing: an existing scene folder yes, anything else no
+    write_scene(tmp_path / "s", frames[:1], CLASSES)
+    assert len(load(tmp_path / "s")) == 1
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    with pytest.raises(PsimapError, match="not a scene folder; refusing"):
+        write_scene(tmp_path / "mine", frames, CLASSES)
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
     with pytest.raises(PsimapError, match="reserved"):
         write_scene(tmp_path / "t", frames, [ClassInfo(0, "void", False)])
     frames[0].instance = np.full((H, W), 70000)

@@ -154,6 +154,8 @@ def test_scannet_fixture(tmp_path):
         np.testing.assert_allclose(f.depth, raw * 0.001, atol=1e-6)
         np.testing.assert_array_equal(f.semantic, sem[::2, ::2])   # nearest: ids never blended
         np.testing.assert_array_equal(f.instance, inst[::2, ::2])
+        np.testing.assert_array_equal(f.gt_instance, f.instance)
+        np.testing.assert_array_equal(f.gt_semantic, f.semantic)
         np.testing.assert_allclose(f.K, Kd)
         np.testing.assert_allclose(f.c2w, c2w, atol=1e-12)
 

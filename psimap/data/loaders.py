@@ -9,6 +9,9 @@ Layouts (all poses camera-to-world, OpenCV camera axes on disk already, so no co
   optional `label-filt/N.png` (semantic) and `instance-filt/N.png` (instance). Colour (1296x968)
   is resized to the depth size (640x480), labels by nearest neighbour. K is `intrinsic_depth.txt`
   (the camera whose pixels depth holds), else `intrinsic_color.txt` scaled to the depth size.
+  The labels are ScanNet's cross-view-consistent annotation: they fill `.semantic`/`.instance` and
+  also `.gt_semantic`/`.gt_instance`. Class table from `classes.json` or
+  `scannetv2-labels.combined.tsv` (next to the scan or one level up), else empty.
   Real ScanNet has frames whose pose is `-inf` (tracking lost): they are SKIPPED with a warning
   naming the files, since a scan with a few lost frames is still usable.
 - Replica, NICE-SLAM layout: `results/frameNNNNNN.jpg`, `results/depthNNNNNN.png` (uint16,
@@ -246,6 +249,10 @@ def load_scannet(root: str | os.PathLike) -> FrameSequence:
     def load_frame(i: int) -> Frame:
         color, depth, c2w, name, labels = records[i]
         f = _rgbd_frame(color, depth, 0.001, (0,), K, c2w, name, resize_rgb=True, labels=labels)
+        # ScanNet's label-filt / instance-filt are its cross-view-consistent annotation, so they are
+        # also the ground truth that `psimap eval` compares against.
+        f.gt_semantic = None if f.semantic is None else f.semantic.copy()
+        f.gt_instance = None if f.instance is None else f.instance.copy()
         if f.depth.shape != (dh, dw):
             raise PsimapError(f"depth image {depth} is {f.width}x{f.height}, expected {dw}x{dh} like {depth0}")
         return f

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -352,8 +352,9 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
     semantic / instance / gt_semantic / gt_instance [H,W] and lidar [N,4]). All frames share one
     image size; intrinsics that differ from the first frame's are written per frame.
     gt_mesh: trimesh.Trimesh; gt_face_instance / gt_face_semantic: [F] int; gt_objects: {instance id:
-    trimesh}; gt_instances: [{"id", "semantic", "name"}]. Depth is quantised to
+    trimesh}; gt_instances: [{"id", "semantic", "name", ...}] (extra JSON-able fields are kept). Depth is quantised to
     `depth_unit_scale_factor` metres; non-finite or negative depth is written as invalid (0).
+    An existing scene folder at `out_dir` is replaced; any other non-empty folder is refused.
     Returns the folder path.
     """
     out_dir = Path(out_dir)
@@ -378,10 +379,18 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
     if any(c.id == 0 for c in classes):
         raise PsimapError("write_scene: class id 0 is reserved for void / no label")
 
+    if out_dir.is_file() or (out_dir.is_dir() and any(out_dir.iterdir())
+                             and not (out_dir / TRANSFORMS).is_file()):
+        # The folder is replaced as a whole: never do that to something that is not a scene folder.
+        raise PsimapError(f"write_scene: {out_dir} exists and is not a scene folder; refusing to replace it")
+
+    from tqdm import tqdm
+
     with atomic_dir(out_dir) as tmp:
         for sub in ("images", "depth"):
             (tmp / sub).mkdir()
-        for i, (f, stem) in enumerate(zip(frames, stems)):
+        for i, (f, stem) in enumerate(tqdm(list(zip(frames, stems)), desc="writing frames", unit="frame",
+                                           disable=None, leave=False)):
             what = f"frame {i} ({stem})"
             depth = np.asarray(f.depth, dtype=np.float64)
             if depth.shape != (h, w):
@@ -450,9 +459,22 @@ def _write_gt(gt_dir: Path, mesh, face_instance, face_semantic, objects, instanc
             obj.export(gt_dir / "objects" / f"{int(oid)}.ply")
     if instances is not None:
         gt_dir.mkdir(parents=True, exist_ok=True)
-        rows = [{"id": int(r["id"]), "semantic": int(r["semantic"]), "name": str(r.get("name", ""))}
-                for r in instances]
-        (gt_dir / "instances.json").write_text(json.dumps(rows, indent=1))
+        try:
+            rows = [{**r, "id": int(r["id"]), "semantic": int(r["semantic"]), "name": str(r.get("name", ""))}
+                    for r in instances]
+            text = json.dumps(rows, indent=1, default=_json_plain)
+        except (KeyError, TypeError, ValueError) as e:
+            raise PsimapError(f"write_scene: gt_instances must be dicts with 'id' and 'semantic' ({e})") from None
+        (gt_dir / "instances.json").write_text(text)
+
+
+def _json_plain(v):
+    """numpy scalars / arrays in extra instance fields -> plain JSON values."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(f"{type(v).__name__} is not JSON serialisable")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -480,8 +502,8 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
     if model not in ("OPENCV", "PINHOLE"):
         raise PsimapError(f"{tf_path}: camera_model {model!r} is not supported (OPENCV / PINHOLE only)")
     if any(abs(float(meta.get(k, 0.0) or 0.0)) > 1e-9 for k in ("k1", "k2", "k3", "k4", "p1", "p2")):
-        print(f"warning: {tf_path}: lens distortion coefficients are ignored (images assumed undistorted)",
-              file=sys.stderr)
+        warnings.warn(f"{tf_path}: lens distortion coefficients are ignored (images assumed undistorted)",
+                      stacklevel=2)
     scale = float(meta.get("depth_unit_scale_factor", 0.001))
     if not (scale > 0 and math.isfinite(scale)):
         raise PsimapError(f"{tf_path}: depth_unit_scale_factor must be > 0, got {scale}")
@@ -578,7 +600,7 @@ def read_lidar(path: str | os.PathLike) -> np.ndarray:
 class GroundTruth:
     """What a scene folder's gt/ holds. mesh: trimesh.Trimesh or None; face_instance / face_semantic:
     [F] int64 (None without a mesh); objects: {instance id: path of its complete mesh};
-    instances: [{"id", "semantic", "name"}]."""
+    instances: [{"id", "semantic", "name", ...extra fields the writer was given}]."""
 
     mesh: object = None
     face_instance: np.ndarray | None = None
@@ -604,8 +626,8 @@ def read_gt(root: str | os.PathLike) -> GroundTruth:
     if (gt_dir / "instances.json").is_file():
         try:
             rows = json.loads((gt_dir / "instances.json").read_text())
-            gt.instances = [{"id": int(r["id"]), "semantic": int(r["semantic"]), "name": str(r.get("name", ""))}
-                            for r in rows]
+            gt.instances = [{**r, "id": int(r["id"]), "semantic": int(r["semantic"]),
+                             "name": str(r.get("name", ""))} for r in rows]
         except (json.JSONDecodeError, KeyError, TypeError, ValueError):
             raise PsimapError(f"{gt_dir / 'instances.json'}: expected a list of {{id, semantic, name}}") from None
     return gt
