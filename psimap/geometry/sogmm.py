@@ -215,7 +215,8 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
     points: [N, 3] or [N, 4] (x, y, z world metres[, grey in [0, 1]]); intensity: [N] grey, overrides
       column 3; without either the grey channel is constant 0.5. Rows with NaN / inf are dropped
       (the count is in fit_stats["n_dropped_nonfinite"]).
-    voxel: downsampling cube side (m); None = from the cloud's density (see _auto_voxel); 0 = none.
+    voxel: downsampling cube side (m); None = from the cloud's density (see _auto_voxel); 0 = none
+      (the automatic settings below then still use the density-derived length).
     max_extent: largest allowed side length of a component (m); None = max(16 voxel, diag / 64), so
       nearest-mean queries in training stay local.
     planarity: split while lambda_min / lambda_mid exceeds this (scale-free flatness test). It only
@@ -253,13 +254,14 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
     lo, hi = pts[:, :3].min(axis=0), pts[:, :3].max(axis=0)
     diag = float(np.linalg.norm(hi - lo))
     scale = diag if diag > 0 else 1.0               # all points coincide: any positive unit works
-    if voxel is None:
-        voxel = _auto_voxel(pts[:, :3], diag) if diag > 0 else scale * 1e-3
-    if voxel < 0 or not np.isfinite(voxel):
+    if voxel is not None and (voxel < 0 or not np.isfinite(voxel)):
         raise PsimapError(f"voxel must be >= 0, got {voxel}")
+    # length unit of the automatic settings: the given voxel, else the density-derived one
+    unit = voxel if voxel else (_auto_voxel(pts[:, :3], diag) if diag > 0 else scale * 1e-3)
+    if voxel is None:
+        voxel = unit
     if voxel > 0:
         pts = voxel_downsample(pts, voxel)
-    unit = voxel if voxel > 0 else scale * 1e-3     # length unit for the automatic settings
     if max_extent is None:
         max_extent = max(16.0 * unit, diag / 64.0)
     if residual is None:
