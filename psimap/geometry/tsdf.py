@@ -1,0 +1,192 @@
+"""TSDF fusion of depth maps into a triangle mesh (Open3D's tensor VoxelBlockGrid).
+
+Open3D 0.20's legacy ScalableTSDFVolume integrates but extracts an empty mesh, so the tensor
+`o3d.t.geometry.VoxelBlockGrid` is used (float32 depth in metres with float32 colour).
+A per-pixel mask restricts fusion to some pixels (the export stage fuses one instance at a time with
+the same code). Voxel size, truncation and the depth cut-off follow from the data unless given.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from psimap import PsimapError
+
+
+@dataclass
+class TSDFParams:
+    voxel_size: float      # metres
+    trunc: float           # truncation distance, metres
+    depth_max: float       # depth cut-off, metres
+
+
+def _pixel_footprint(depth: np.ndarray, K: np.ndarray) -> float:
+    """Median size of one pixel on the surface, metres: depth / focal length."""
+    valid = depth[depth > 0]
+    if valid.size == 0:
+        return np.inf
+    return float(np.median(valid)) / float(0.5 * (K[0, 0] + K[1, 1]))
+
+
+def _backproject_sample(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, step: int) -> np.ndarray:
+    """World points [P, 3] of every `step`-th valid pixel."""
+    d = depth[::step, ::step]
+    v, u = np.nonzero(d > 0)
+    if v.size == 0:
+        return np.zeros((0, 3))
+    z = d[v, u].astype(np.float64)
+    x = (u * step - K[0, 2]) / K[0, 0] * z
+    y = (v * step - K[1, 2]) / K[1, 1] * z
+    pc = np.stack([x, y, z], 1)
+    return pc @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def derive_params(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequence[np.ndarray], *,
+                  voxel_size: float | None = None, trunc: float | None = None,
+                  depth_max: float | None = None) -> TSDFParams:
+    """TSDF parameters from the data: depths [H,W] metres, Ks [3,3], c2ws [4,4] OpenCV.
+
+    voxel = twice the median pixel footprint (finer cannot be resolved by the depth maps), kept
+    between extent/512 (memory) and extent/64 (detail); truncation = 4 voxels (the band a noisy depth
+    sample spreads over); depth cut-off = the 99.5th depth percentile + truncation.
+    """
+    foot, pts, all_d = [], [], []
+    for d, K, c2w in zip(depths, Ks, c2ws):
+        if not np.any(d > 0):
+            continue
+        foot.append(_pixel_footprint(d, K))
+        pts.append(_backproject_sample(d, K, c2w, max(1, min(d.shape) // 32)))
+        all_d.append(d[d > 0][:: max(1, int(np.count_nonzero(d > 0)) // 2000)])
+    if not foot:
+        raise PsimapError("TSDF fusion: no frame has valid depth")
+    p = np.concatenate(pts)
+    extent = float(np.linalg.norm(np.percentile(p, 99, 0) - np.percentile(p, 1, 0)))
+    extent = max(extent, 1e-3)
+    if voxel_size is None:
+        voxel_size = float(np.clip(2.0 * np.median(foot), extent / 512, extent / 64))
+    if trunc is None:
+        trunc = 4.0 * voxel_size
+    if depth_max is None:
+        depth_max = float(np.percentile(np.concatenate(all_d), 99.5)) + trunc
+    if not (voxel_size > 0 and trunc > 0 and depth_max > 0):
+        raise PsimapError(f"TSDF fusion: invalid parameters voxel={voxel_size} trunc={trunc} "
+                          f"depth_max={depth_max}")
+    return TSDFParams(float(voxel_size), float(trunc), float(depth_max))
+
+
+def clean_components(mesh, keep_fraction: float = 0.05):
+    """Keep connected components with at least `keep_fraction` of the largest's triangles.
+
+    keep_fraction = 1 keeps only the largest component. mesh: trimesh.Trimesh; returns a new one.
+    """
+    import trimesh
+
+    if len(mesh.faces) == 0:
+        return mesh
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    counts = np.bincount(labels)
+    keep = counts >= keep_fraction * counts.max()
+    if keep_fraction >= 1.0:
+        keep = np.zeros_like(keep)
+        keep[int(np.argmax(counts))] = True
+    face_mask = keep[labels]
+    if face_mask.all():
+        return mesh
+    out = mesh.submesh([np.nonzero(face_mask)[0]], append=True, repair=False)
+    return out
+
+
+def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequence[np.ndarray], *,
+              colors: Sequence[np.ndarray] | None = None, masks: Sequence[np.ndarray] | None = None,
+              voxel_size: float | None = None, trunc: float | None = None,
+              depth_max: float | None = None, keep_fraction: float = 0.05,
+              weight_threshold: float = 1.0, progress: bool = False):
+    """Fuse depth maps into a mesh; returns trimesh.Trimesh (metres, world frame, vertex colours).
+
+    depths: list of [H,W] float32 metres (0 / non-finite = invalid); Ks: list of [3,3];
+    c2ws: list of [4,4] camera-to-world OpenCV; colors: optional list of [H,W,3] float in [0,1]
+    (or uint8); masks: optional list of [H,W] bool — only True pixels are fused.
+    Parameters left None follow from the data (`derive_params`). Components smaller than
+    `keep_fraction` of the largest are removed. An empty mesh is returned when nothing was fused.
+    """
+    import open3d as o3d
+    import open3d.core as o3c
+    import trimesh
+    from tqdm import tqdm
+
+    n = len(depths)
+    if n == 0 or len(Ks) != n or len(c2ws) != n:
+        raise PsimapError(f"TSDF fusion: got {n} depth maps, {len(Ks)} intrinsics, {len(c2ws)} poses")
+    if colors is not None and len(colors) != n:
+        raise PsimapError(f"TSDF fusion: {len(colors)} colour images for {n} depth maps")
+    if masks is not None and len(masks) != n:
+        raise PsimapError(f"TSDF fusion: {len(masks)} masks for {n} depth maps")
+
+    clean = []
+    for i in range(n):
+        d = np.asarray(depths[i], dtype=np.float32)
+        if d.ndim != 2:
+            raise PsimapError(f"TSDF fusion: depth {i} has shape {d.shape}, expected [H, W]")
+        d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+        if masks is not None:
+            m = np.asarray(masks[i], dtype=bool)
+            if m.shape != d.shape:
+                raise PsimapError(f"TSDF fusion: mask {i} has shape {m.shape}, depth {d.shape}")
+            d = np.where(m, d, 0.0).astype(np.float32)
+        clean.append(d)
+    Ks = [np.asarray(K, dtype=np.float64) for K in Ks]
+    c2ws = [np.asarray(c, dtype=np.float64) for c in c2ws]
+    if not any(np.any(d > 0) for d in clean):
+        return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64))
+    params = derive_params(clean, Ks, c2ws, voxel_size=voxel_size, trunc=trunc, depth_max=depth_max)
+
+    dev = o3c.Device("CPU:0")
+    use_color = colors is not None
+    names = ("tsdf", "weight", "color") if use_color else ("tsdf", "weight")
+    dtypes = (o3c.float32,) * len(names)
+    channels = ((1), (1), (3)) if use_color else ((1), (1))
+    # Blocks of 8^3 voxels; the hash map grows as needed, the count is only the initial capacity.
+    vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=names, attr_dtypes=dtypes, attr_channels=channels,
+                                        voxel_size=params.voxel_size, block_resolution=8,
+                                        block_count=20000, device=dev)
+    mult = params.trunc / params.voxel_size
+    for i in tqdm(range(n), desc="tsdf", disable=not progress, leave=False):
+        d = clean[i]
+        if not np.any(d > 0):
+            continue
+        depth_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(d)[..., None]))
+        intr = o3c.Tensor(Ks[i])
+        extr = o3c.Tensor(np.ascontiguousarray(np.linalg.inv(c2ws[i])))
+        coords = vbg.compute_unique_block_coordinates(depth_img, intr, extr, 1.0, params.depth_max,
+                                                      mult)
+        if use_color:
+            c = np.asarray(colors[i])
+            c = (c.astype(np.float32) / 255.0) if c.dtype == np.uint8 else c.astype(np.float32)
+            if c.shape[:2] != d.shape:
+                raise PsimapError(f"TSDF fusion: colour {i} has shape {c.shape}, depth {d.shape}")
+            color_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(c[..., :3])))
+            vbg.integrate(coords, depth_img, color_img, intr, intr, extr, 1.0, params.depth_max, mult)
+        else:
+            vbg.integrate(coords, depth_img, intr, extr, 1.0, params.depth_max, mult)
+
+    try:
+        tm = vbg.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+    except RuntimeError:
+        # Open3D raises when no voxel passes the weight threshold
+        tm = o3d.geometry.TriangleMesh()
+    v = np.asarray(tm.vertices)
+    f = np.asarray(tm.triangles)
+    vc = None
+    if use_color and tm.has_vertex_colors() and len(v):
+        vc = (np.clip(np.asarray(tm.vertex_colors), 0, 1) * 255).round().astype(np.uint8)
+        vc = np.concatenate([vc, np.full((len(vc), 1), 255, np.uint8)], 1)
+    mesh = trimesh.Trimesh(vertices=v, faces=f, vertex_colors=vc, process=False)
+    if len(mesh.faces):
+        mesh.merge_vertices()
+        mesh.remove_unreferenced_vertices()
+        mesh = clean_components(mesh, keep_fraction)
+    mesh.metadata["tsdf"] = {"voxel_size": params.voxel_size, "trunc": params.trunc,
+                             "depth_max": params.depth_max}
+    return mesh
