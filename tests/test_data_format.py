@@ -111,7 +111,10 @@ def test_pose_convention_on_disk(tmp_path):
         load(tmp_path / "s")
     meta["k1"] = 0.0
     (tmp_path / "s" / "transforms.json").write_text(json.dumps(meta))
+    meta["frames"][0]["transform_matrix"] = gl[:3].tolist()     # 3x4 as some exporters write it
+    (tmp_path / "s" / "transforms.json").write_text(json.dumps(meta))
     f = load(tmp_path / "s" / "transforms.json")[0]   # the json file itself also loads
+    np.testing.assert_allclose(f.c2w, frames[0].c2w, atol=1e-12)
     assert f.semantic is None and f.instance is None and f.lidar is None and f.gt_instance is None
 
 

@@ -384,9 +384,13 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
         # The folder is replaced as a whole: never do that to something that is not a scene folder.
         raise PsimapError(f"write_scene: {out_dir} exists and is not a scene folder; refusing to replace it")
 
+    from concurrent.futures import ThreadPoolExecutor
+
     from tqdm import tqdm
 
-    with atomic_dir(out_dir) as tmp:
+    # PNG encoding (zlib) releases the GIL: encode on a few threads while the next frame is checked.
+    with atomic_dir(out_dir) as tmp, ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        png_jobs = []
         for sub in ("images", "depth"):
             (tmp / sub).mkdir()
         for i, (f, stem) in enumerate(tqdm(list(zip(frames, stems)), desc="writing frames", unit="frame",
@@ -403,12 +407,12 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
                 raise PsimapError(f"write_scene: {what} K must be a finite 3x3 matrix")
             c2w = check_pose(f.c2w, f"write_scene {what}")
             rgb8 = np.round(np.clip(np.nan_to_num(rgb), 0.0, 1.0) * 255.0).astype(np.uint8)
-            _write_png(tmp / "images" / f"{stem}.png", rgb8)
+            png_jobs.append(pool.submit(_write_png, tmp / "images" / f"{stem}.png", rgb8))
             q = np.where(np.isfinite(depth) & (depth > 0), np.round(depth / scale), 0.0)
             if q.max(initial=0) > _UINT16_MAX:
                 raise PsimapError(f"write_scene: {what} depth {depth[np.isfinite(depth)].max():.3f} m exceeds "
                                   f"the uint16 range at depth_unit_scale_factor={scale}; use a larger factor")
-            _write_png(tmp / "depth" / f"{stem}.png", q.astype(np.uint16))
+            png_jobs.append(pool.submit(_write_png, tmp / "depth" / f"{stem}.png", q.astype(np.uint16)))
             entry = {"file_path": f"images/{stem}.png", "depth_file_path": f"depth/{stem}.png",
                      "transform_matrix": (c2w @ GL_TO_CV).tolist()}
             if not np.allclose(K, K0, rtol=0, atol=1e-9):
@@ -420,7 +424,8 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
                 if arr is None:
                     continue
                 (tmp / sub).mkdir(parents=True, exist_ok=True)
-                _write_png(tmp / sub / f"{stem}.png", _as_label(arr, f"write_scene: {what} {sub}", (h, w)))
+                png_jobs.append(pool.submit(_write_png, tmp / sub / f"{stem}.png",
+                                            _as_label(arr, f"write_scene: {what} {sub}", (h, w))))
                 if key:
                     entry[key] = f"{sub}/{stem}.png"
             if f.lidar is not None:
@@ -431,6 +436,8 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
                 np.save(tmp / "lidar" / f"{stem}.npy", pts)
                 entry["lidar_file_path"] = f"lidar/{stem}.npy"
             meta["frames"].append(entry)
+        for job in png_jobs:
+            job.result()              # re-raise any write error before the folder is published
         (tmp / TRANSFORMS).write_text(json.dumps(meta, indent=1))
         _write_gt(tmp / "gt", gt_mesh, gt_face_instance, gt_face_semantic, gt_objects, gt_instances)
     return out_dir
@@ -527,6 +534,8 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
         except (KeyError, TypeError, ValueError):
             raise PsimapError(f"{src}: needs file_path, depth_file_path, transform_matrix and intrinsics "
                               f"(fl_x, fl_y, cx, cy, w, h)") from None
+        if c2w_gl.shape == (3, 4):          # some exporters drop the constant last row
+            c2w_gl = np.vstack([c2w_gl, [0.0, 0.0, 0.0, 1.0]])
         K = np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
         if not np.all(np.isfinite(K)) or fl_x <= 0 or fl_y <= 0 or w <= 0 or h <= 0:
             raise PsimapError(f"{src}: invalid intrinsics")
