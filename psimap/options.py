@@ -37,8 +37,10 @@ class EvalOptions:
     data: str = pos("scene folder with ground truth under gt/")
     json: bool = opt(False, "print the metrics as JSON")
     threshold: float = opt(0.05, "distance threshold for precision / recall / F1, metres")
-    samples: int = opt(200_000, "points sampled on each mesh")
+    samples: int = opt(200_000, "at most this many points sampled on each mesh (fewer once the "
+                                "metrics' standard error is within budget)")
     seed: int = opt(0, "seed for the surface sampling")
+    plot: str = opt("", "also write a PNG: P/R/F1 vs threshold (mesh) or per-class PQ/IoU (labels)")
 
 
 @dataclass

@@ -1,0 +1,351 @@
+"""`psimap eval PRED DATA`: geometry and/or panoptic metrics of a prediction against DATA's ground truth.
+
+PRED is
+- a mesh file (.ply .obj .glb .gltf .off .stl): geometry against DATA/gt/mesh.ply, GT culled to the
+  surface DATA's cameras see;
+- a trained checkpoint (.ckpt): its whole-scene mesh (`Scene.mesh()`), evaluated as above;
+- a folder of predicted labels: panoptic against DATA/gt/{semantic,instance}/<stem>.png, either
+  COCO panoptic (`panoptic.json` + PNGs whose pixel id = R + 256 G + 256^2 B) or
+  `semantic/<stem>.png` + `instance/<stem>.png` (uint16). Frames are matched by stem; a frame with
+  no prediction counts as all void (and is reported).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from psimap import PsimapError
+
+MESH_SUFFIXES = (".ply", ".obj", ".glb", ".gltf", ".off", ".stl")
+GEOMETRY_KEYS = ("accuracy", "completeness", "chamfer_l1", "precision", "recall", "f1", "threshold",
+                 "n_pred_points", "n_gt_points", "gt_seen_fraction")
+PANOPTIC_KEYS = ("pq", "sq", "rq", "miou", "macc", "mcov", "mwcov", "pq_frame", "pq_thing", "pq_stuff",
+                 "n_frames", "n_gt_instances", "missing_frames", "unmatched_predictions")
+
+
+# --------------------------------------------------------------------------------------------------
+# reading predictions
+
+
+def load_mesh(path: str | os.PathLike):
+    """A mesh file -> trimesh.Trimesh (scenes are flattened with their transforms)."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise PsimapError(f"missing mesh file: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on malformed files
+        raise PsimapError(f"cannot read mesh {path}: {type(e).__name__}: {e}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise PsimapError(f"mesh {path} has no triangles")
+    return mesh
+
+
+def _checkpoint_mesh(path: Path):
+    try:
+        from psimap.scene import load_scene
+    except ImportError:
+        raise PsimapError("evaluating a checkpoint needs the training stage (psimap.scene)") from None
+    return load_scene(path).mesh()
+
+
+def _read_panoptic_png(path: Path) -> np.ndarray:
+    """COCO panoptic PNG -> [H, W] segment ids (R + 256 G + 256^2 B)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as img:
+            rgb = np.asarray(img.convert("RGB")).astype(np.int64)
+    except (UnidentifiedImageError, OSError) as e:
+        raise PsimapError(f"cannot read panoptic PNG {path}: {e}") from None
+    return rgb[..., 0] + 256 * rgb[..., 1] + 65536 * rgb[..., 2]
+
+
+class _CocoPanoptic:
+    """Predicted frames of a COCO panoptic folder: stem -> (semantic, instance) on demand."""
+
+    def __init__(self, root: Path):
+        jpath = root / "panoptic.json"
+        try:
+            meta = json.loads(jpath.read_text())
+            anns = meta["annotations"]
+            things = {int(c["id"]) for c in meta.get("categories", []) if c.get("isthing", True)}
+            self.files: dict[str, tuple[Path, dict[int, int]]] = {}
+            for a in anns:
+                name = a["file_name"]
+                cats = {int(s["id"]): int(s["category_id"]) for s in a["segments_info"]}
+                self.files[Path(name).stem] = (self._find(root, name), cats)
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
+            raise PsimapError(f"{jpath}: not a COCO panoptic file ({type(e).__name__}: {e})") from None
+        self.things = things
+
+    @staticmethod
+    def _find(root: Path, name: str) -> Path:
+        for cand in (root / name, root / "panoptic" / name):
+            if cand.is_file():
+                return cand
+        raise PsimapError(f"missing file: {root / name} (listed in {root / 'panoptic.json'})")
+
+    def stems(self) -> set[str]:
+        return set(self.files)
+
+    def read(self, stem: str) -> tuple[np.ndarray, np.ndarray]:
+        path, cats = self.files[stem]
+        ids = _read_panoptic_png(path)
+        seg_ids, inv = np.unique(ids, return_inverse=True)
+        unknown = [int(s) for s in seg_ids if s != 0 and s not in cats]
+        if unknown:
+            raise PsimapError(f"{path}: segment id {unknown[0]} is not listed in panoptic.json")
+        sem_of = np.array([cats.get(int(s), 0) for s in seg_ids], dtype=np.int64)
+        # Stuff segments carry no instance id (one segment per class); thing segments keep theirs.
+        inst_of = np.array([int(s) if cats.get(int(s), 0) in self.things else 0 for s in seg_ids],
+                           dtype=np.int64)
+        inv = inv.reshape(ids.shape)
+        return sem_of[inv], inst_of[inv]
+
+
+class _SemanticInstance:
+    """Predicted frames as `semantic/<stem>.png` + `instance/<stem>.png`."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self._stems = {p.stem for p in (root / "semantic").glob("*.png")}
+
+    def stems(self) -> set[str]:
+        return self._stems
+
+    def read(self, stem: str) -> tuple[np.ndarray, np.ndarray]:
+        from psimap.data.scene_format import read_label_png
+
+        sem = read_label_png(self.root / "semantic" / f"{stem}.png")
+        ipath = self.root / "instance" / f"{stem}.png"
+        inst = read_label_png(ipath) if ipath.is_file() else np.zeros_like(sem)
+        if inst.shape != sem.shape:
+            raise PsimapError(f"{ipath} is {inst.shape[::-1]} pixels but its semantic map is {sem.shape[::-1]}")
+        return sem, inst
+
+
+def open_labels(root: str | os.PathLike):
+    """A folder of predicted labels (COCO panoptic or semantic/ + instance/)."""
+    root = Path(root)
+    if (root / "panoptic.json").is_file():
+        return _CocoPanoptic(root)
+    if (root / "semantic").is_dir():
+        return _SemanticInstance(root)
+    raise PsimapError(f"{root}: a label folder needs panoptic.json (COCO panoptic) or semantic/ + instance/")
+
+
+# --------------------------------------------------------------------------------------------------
+# evaluation
+
+
+def _load_data(data):
+    from psimap.data import load
+
+    data = Path(data)
+    if not data.exists():
+        raise PsimapError(f"no such data folder: {data}")
+    return load(data)
+
+
+def evaluate_geometry(pred_mesh, data, *, threshold=0.05, samples=200_000, seed=0, plot=None,
+                      progress=False) -> dict:
+    """Geometry metrics of `pred_mesh` (trimesh) against DATA/gt/mesh.ply, GT culled by DATA's cameras."""
+    from psimap.data.scene_format import read_gt
+    from psimap.metrics.geometry import geometry_metrics, plot_geometry
+
+    seq = _load_data(data)
+    gt = read_gt(seq.root or data)
+    if gt.mesh is None:
+        raise PsimapError(f"{Path(seq.root or data) / 'gt' / 'mesh.ply'} not found: geometry needs the "
+                          f"ground-truth mesh")
+    cameras = []
+    for i in range(len(seq)):
+        f = seq[i]
+        cameras.append((f.K, f.c2w, f.width, f.height))
+    out, dist = geometry_metrics(pred_mesh, gt.mesh, threshold=threshold, cameras=cameras,
+                                 max_samples=samples, seed=seed, progress=progress,
+                                 return_distances=True)
+    if plot:
+        plot_geometry(dist, plot, threshold)
+    return out
+
+
+def evaluate_panoptic(labels, data, *, progress=False, plot=None) -> dict:
+    """Panoptic metrics of a predicted label folder (see `open_labels`) against DATA's GT label maps."""
+    from tqdm import tqdm
+
+    from psimap.metrics.panoptic import PanopticAccumulator
+
+    seq = _load_data(data)
+    labels = open_labels(labels) if isinstance(labels, (str, os.PathLike)) else labels
+    things = [c.id for c in seq.classes if c.isthing] if seq.classes else None
+    acc = PanopticAccumulator(things)
+    stems = seq.names or [seq[i].name for i in range(len(seq))]
+    have = labels.stems()
+    missing = []
+    for i in tqdm(range(len(seq)), desc="panoptic", unit="frame", disable=None if progress else True):
+        f = seq[i]
+        if f.gt_semantic is None:
+            raise PsimapError(f"{Path(seq.root) / 'gt' / 'semantic' / (f.name + '.png')} not found: "
+                              f"panoptic metrics need the ground-truth label maps")
+        gt_inst = f.gt_instance if f.gt_instance is not None else np.zeros_like(f.gt_semantic)
+        if f.name in have:
+            sem, inst = labels.read(f.name)
+            if sem.shape != f.gt_semantic.shape:
+                raise PsimapError(f"predicted labels of frame {f.name} are {sem.shape[1]}x{sem.shape[0]} "
+                                  f"pixels, ground truth is {f.width}x{f.height}")
+        else:
+            missing.append(f.name)
+            sem = inst = np.zeros_like(f.gt_semantic)
+        acc.add(sem, inst, f.gt_semantic, gt_inst, name=f.name)
+    if len(missing) == len(seq):
+        raise PsimapError(f"no predicted frame matches a frame of {data} (frames are matched by file stem)")
+    out = acc.result()
+    out["missing_frames"] = missing
+    out["unmatched_predictions"] = sorted(have - set(stems))
+    if plot:
+        plot_panoptic(out, plot, {c.id: c.name for c in seq.classes})
+    return out
+
+
+def evaluate(pred, data, *, threshold: float = 0.05, samples: int = 200_000, seed: int = 0,
+             plot: str | None = None, progress: bool = False) -> dict:
+    """Metrics of `pred` against the ground truth of scene folder `data`.
+
+    pred: a mesh file path, a trimesh.Trimesh, a `.ckpt` path, or a folder of predicted labels.
+    Returns {"geometry": {...}} for meshes / checkpoints and {"panoptic": {...}} for label folders
+    (keys: GEOMETRY_KEYS / PANOPTIC_KEYS, plus "per_class" for panoptic). `samples` caps the points
+    sampled on each mesh (fewer are used once the error budget is met).
+    """
+    if not (threshold > 0 and math.isfinite(threshold)):
+        raise PsimapError(f"threshold must be a positive number of metres, got {threshold}")
+    kw = dict(progress=progress, plot=plot)
+    if hasattr(pred, "faces"):
+        return {"geometry": evaluate_geometry(pred, data, threshold=threshold, samples=samples, seed=seed, **kw)}
+    pred = Path(pred)
+    if not pred.exists():
+        raise PsimapError(f"no such file or folder: {pred}")
+    if pred.is_dir():
+        return {"panoptic": evaluate_panoptic(pred, data, **kw)}
+    suffix = pred.suffix.lower()
+    if suffix == ".ckpt":
+        mesh = _checkpoint_mesh(pred)
+    elif suffix in MESH_SUFFIXES:
+        mesh = load_mesh(pred)
+    else:
+        raise PsimapError(f"{pred}: PRED must be a mesh ({', '.join(MESH_SUFFIXES)}), a .ckpt or a label folder")
+    return {"geometry": evaluate_geometry(mesh, data, threshold=threshold, samples=samples, seed=seed, **kw)}
+
+
+# --------------------------------------------------------------------------------------------------
+# reporting
+
+
+def plot_panoptic(result: dict, path, class_names: dict[int, str] | None = None) -> None:
+    """PNG: per-class PQ / SQ / RQ and semantic IoU."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from psimap.io_utils import atomic_path
+
+    per = result["per_class"]
+    cls = sorted(per)
+    names = [(class_names or {}).get(c, str(c)) for c in cls]
+    x = np.arange(len(cls))
+    fig, ax = plt.subplots(figsize=(max(6, 0.6 * len(cls) + 2), 4))
+    for k, (key, label) in enumerate((("pq", "PQ"), ("sq", "SQ"), ("rq", "RQ"), ("iou", "IoU"))):
+        ax.bar(x + (k - 1.5) * 0.2, [per[c][key] for c in cls], 0.2, label=label)
+    ax.set_xticks(x, names, rotation=45, ha="right")
+    ax.set_ylim(0, 1.02)
+    ax.legend()
+    ax.set_title(f"scene PQ {result['pq']:.3f} (per-frame {result['pq_frame']:.3f}), mIoU {result['miou']:.3f}")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+
+
+def _jsonable(v):
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return None if not math.isfinite(v) else float(v)
+    return v
+
+
+def to_json(result: dict) -> str:
+    """The metrics as JSON (undefined values -> null)."""
+    out = {}
+    if "geometry" in result:
+        out["geometry"] = {k: result["geometry"][k] for k in GEOMETRY_KEYS if k in result["geometry"]}
+    if "panoptic" in result:
+        p = result["panoptic"]
+        out["panoptic"] = {k: p[k] for k in PANOPTIC_KEYS if k in p}
+        out["panoptic"]["per_class"] = p.get("per_class", {})
+    return json.dumps(_jsonable(out), indent=1)
+
+
+def format_table(result: dict) -> str:
+    """A readable table of the metrics."""
+    def f(v, unit=""):
+        if v is None or (isinstance(v, float) and not math.isfinite(v)):
+            return "n/a"
+        return f"{v * 100:.2f} cm" if unit == "m" else f"{v:.4f}"
+
+    lines = []
+    if "geometry" in result:
+        g = result["geometry"]
+        lines += ["geometry", f"  accuracy      {f(g['accuracy'], 'm')}   (pred -> GT, mean)",
+                  f"  completeness  {f(g['completeness'], 'm')}   (seen GT -> pred, mean)",
+                  f"  chamfer-L1    {f(g['chamfer_l1'], 'm')}",
+                  f"  precision     {f(g['precision'])}   @ {g['threshold'] * 100:g} cm",
+                  f"  recall        {f(g['recall'])}",
+                  f"  F1            {f(g['f1'])}",
+                  f"  points        {g['n_pred_points']} pred, {g['n_gt_points']} GT "
+                  f"({g.get('gt_seen_fraction', 1.0) * 100:.1f}% of GT area seen)"]
+    if "panoptic" in result:
+        p = result["panoptic"]
+        lines += ["panoptic (scene level: ids must agree across frames)",
+                  f"  PQ {f(p['pq'])}   SQ {f(p['sq'])}   RQ {f(p['rq'])}   "
+                  f"(things {f(p['pq_thing'])}, stuff {f(p['pq_stuff'])})",
+                  f"  per-frame PQ  {f(p['pq_frame'])}",
+                  f"  mIoU {f(p['miou'])}   mAcc {f(p['macc'])}",
+                  f"  mCov {f(p['mcov'])}   mW-Cov {f(p['mwcov'])}   ({p['n_gt_instances']} GT instances)",
+                  f"  frames {p['n_frames']}"]
+        if p.get("missing_frames"):
+            lines.append(f"  {len(p['missing_frames'])} frames had no prediction (counted as void): "
+                         + ", ".join(p["missing_frames"][:5]) + (" ..." if len(p["missing_frames"]) > 5 else ""))
+        if p.get("unmatched_predictions"):
+            lines.append(f"  {len(p['unmatched_predictions'])} predicted frames match no DATA frame (ignored)")
+        if p.get("per_class"):
+            lines.append("  class   PQ      SQ      RQ      IoU     TP  FP  FN")
+            for c, v in sorted(p["per_class"].items()):
+                lines.append(f"  {c:<6}{'*' if v['isthing'] else ' '} {v['pq']:.4f}  {v['sq']:.4f}  "
+                             f"{v['rq']:.4f}  {f(v['iou'])}  {v['tp']:<3} {v['fp']:<3} {v['fn']:<3}")
+            lines.append("  (* = thing class)")
+    return "\n".join(lines)
+
+
+def cli_eval(opts) -> int:
+    """`psimap eval PRED DATA [--json]`."""
+    result = evaluate(opts.pred, opts.data, threshold=opts.threshold, samples=opts.samples,
+                      seed=opts.seed, plot=getattr(opts, "plot", "") or None, progress=True)
+    print(to_json(result) if opts.json else format_table(result))
+    if result.get("panoptic", {}).get("missing_frames") and opts.json:
+        print(f"warning: {len(result['panoptic']['missing_frames'])} frames had no prediction "
+              f"(counted as all void)", file=sys.stderr)
+    return 0
