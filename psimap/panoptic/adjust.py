@@ -1,0 +1,56 @@
+"""Dynamic query adjustment (paper §4.1): drop useless queries and duplicate queries.
+
+Useless: matched to a 2D mask in too small a fraction of the frames where the query was visible
+(noisy masks create queries that nothing supports). Duplicate: a query whose 3D mask lies mostly
+inside a larger query's mask, measured by intersection over mask IoM_ij = |M_i & M_j| / |M_i|.
+3D masks use the un-normalised affinity A(q, g) > threshold, so masks of different queries can
+overlap (an argmax partition never would, and IoM would always be 0).
+"""
+from __future__ import annotations
+
+import torch
+
+
+def iom_matrix(masks: torch.Tensor) -> torch.Tensor:
+    """IoM [Q, Q] from 3D masks [N, Q] bool: IoM[i, j] = |M_i & M_j| / |M_i| (0 for empty M_i)."""
+    m = masks.float()
+    inter = m.T @ m                                     # [Q, Q]
+    size = m.sum(0)
+    return inter / size.clamp_min(1.0).unsqueeze(1) * (size > 0).float().unsqueeze(1)
+
+
+def duplicate_queries(masks: torch.Tensor, threshold: float = 0.6) -> torch.Tensor:
+    """Queries to drop as duplicates: [Q] bool.
+
+    Smallest masks first: a query is a duplicate when IoM with a larger, still-kept query exceeds
+    `threshold`; the larger one is kept. Empty masks are duplicates of nothing (handled as useless).
+    """
+    q = masks.shape[1]
+    drop = torch.zeros(q, dtype=torch.bool)
+    if q < 2:
+        return drop
+    iom = iom_matrix(masks).cpu()
+    size = masks.sum(0).cpu()
+    order = torch.argsort(size, stable=True)            # ascending
+    for rank, i in enumerate(order.tolist()):
+        if size[i] == 0:
+            continue
+        larger = order[rank + 1:]
+        larger = larger[~drop[larger]]
+        if larger.numel() and bool((iom[i, larger] > threshold).any()):
+            drop[i] = True
+    return drop
+
+
+def useless_queries(matched: torch.Tensor, visible: torch.Tensor, min_rate: float = 0.1,
+                    min_visible: int = 3) -> torch.Tensor:
+    """Queries to drop as useless: [Q] bool.
+
+    matched [Q]: frames in which the query was matched to a 2D mask; visible [Q]: frames in which its
+    centre was in view. Queries seen at least `min_visible` times whose match rate is below
+    `min_rate` are useless; so are queries never matched although seen.
+    """
+    matched = matched.float()
+    visible = visible.float()
+    rate = matched / visible.clamp_min(1.0)
+    return ((visible >= min_visible) & (rate < min_rate)) | ((visible >= min_visible) & (matched == 0))

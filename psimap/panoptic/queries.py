@@ -1,0 +1,148 @@
+"""Instance queries: a feature plus a 3D Gaussian each, and the query-to-surfel affinity (paper §4.1).
+
+A(q, g) = sigmoid(f_q . f_g) * phi_q(p_g) / phi_q(mu_q): the density ratio is the Gaussian's
+exp(-mahalanobis^2 / 2), 1 at the query's centre. The per-surfel instance distribution is a softmax
+over queries; because A lies in [0, 1], a plain softmax would be almost uniform for tens of queries,
+so the logits are A / temperature (temperature well below 1).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+
+
+def positional_encoding(x: torch.Tensor, n_freqs: int, scale: float) -> torch.Tensor:
+    """psi(mu): sin/cos encoding of positions x [N, 3] (metres) -> [N, 6 * n_freqs].
+
+    `scale` is the scene extent: the lowest frequency spans it once.
+    """
+    freqs = (2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)) * (math.pi / max(scale, 1e-6))
+    ang = x.unsqueeze(-1) * freqs                                   # [N, 3, n_freqs]
+    return torch.cat([ang.sin(), ang.cos()], dim=-1).flatten(1)
+
+
+class InstanceQueries(nn.Module):
+    """Q instance queries: feature [Q, F], mean [Q, 3], covariance [Q, 3, 3] = L L^T + eps I.
+
+    Covariances are parametrised by a lower-triangular L with a log-diagonal so they stay positive
+    definite under gradient steps.
+    """
+
+    def __init__(self, feature: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, *,
+                 temperature: float = 0.1, n_freqs: int = 4, scene_scale: float = 1.0,
+                 attn_dim: int | None = None):
+        super().__init__()
+        q, f = feature.shape
+        self.feature = nn.Parameter(feature.clone().float())
+        self.mean = nn.Parameter(mean.clone().float())
+        L = torch.linalg.cholesky(_regularise(cov.double())).float() if q else torch.zeros(0, 3, 3)
+        diag = torch.diagonal(L, dim1=-2, dim2=-1).clamp_min(1e-6)
+        self.log_diag = nn.Parameter(diag.log())
+        self.offdiag = nn.Parameter(L[:, [1, 2, 2], [0, 0, 1]].clone())
+        self.temperature = temperature
+        self.scene_scale = float(scene_scale)
+        self.n_freqs = n_freqs
+        d = attn_dim or f
+        # Frustum cross-attention projections (keys carry position through psi, values do not).
+        self.pos_proj = nn.Linear(6 * n_freqs, f, bias=False)
+        self.w_q = nn.Linear(f, d, bias=False)
+        self.w_k = nn.Linear(f, d, bias=False)
+        self.w_v = nn.Linear(f, f, bias=False)
+        for lin in (self.w_q, self.w_k, self.w_v):
+            if lin.weight.shape[0] == lin.weight.shape[1]:
+                nn.init.eye_(lin.weight)   # identity start: attention initially compares raw features
+        nn.init.normal_(self.pos_proj.weight, std=0.02)
+        # The attention update enters as a gated residual: start at 0 so early training is stable.
+        self.gate = nn.Parameter(torch.zeros(()))
+
+    @property
+    def count(self) -> int:
+        return int(self.feature.shape[0])
+
+    def chol(self) -> torch.Tensor:
+        """L [Q, 3, 3] lower triangular with positive diagonal."""
+        q = self.count
+        L = torch.zeros(q, 3, 3, dtype=self.feature.dtype, device=self.feature.device)
+        idx = torch.arange(3, device=L.device)
+        L[:, idx, idx] = self.log_diag.exp()
+        L[:, [1, 2, 2], [0, 0, 1]] = self.offdiag
+        return L
+
+    def cov(self) -> torch.Tensor:
+        L = self.chol()
+        return L @ L.transpose(-1, -2)
+
+    def mahalanobis2(self, points: torch.Tensor) -> torch.Tensor:
+        """Squared Mahalanobis distance of points [N, 3] to every query: [N, Q]."""
+        L = self.chol()                                              # [Q, 3, 3]
+        d = points.unsqueeze(1) - self.mean.unsqueeze(0)             # [N, Q, 3]
+        # Solve L y = d per query: y = L^{-1} d, |y|^2 = d^T Sigma^{-1} d.
+        y = torch.linalg.solve_triangular(L.unsqueeze(0).expand(d.shape[0], -1, -1, -1),
+                                          d.unsqueeze(-1), upper=False).squeeze(-1)
+        return (y * y).sum(-1)
+
+    def attend(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor) -> torch.Tensor:
+        """Frustum-constrained cross-attention: updated query features [Q, F].
+
+        surfel_feat [V, F], surfel_pos [V, 3]: only the surfels visible in the current view, so the
+        attention matrix is [Q, V] and memory follows what is visible, not the scene size.
+        """
+        if surfel_feat.shape[0] == 0 or self.count == 0:
+            return self.feature
+        keys = surfel_feat + self.pos_proj(positional_encoding(surfel_pos, self.n_freqs, self.scene_scale))
+        qk = self.w_q(self.feature) @ self.w_k(keys).T / math.sqrt(self.w_q.out_features)  # [Q, V]
+        upd = torch.softmax(qk, dim=-1) @ self.w_v(surfel_feat)                         # [Q, F]
+        return self.feature + torch.tanh(self.gate) * upd
+
+    def affinity(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor,
+                 query_feat: torch.Tensor | None = None) -> torch.Tensor:
+        """A(q, g) = sigmoid(f_q . f_g) * exp(-m^2/2): [N, Q] in [0, 1]."""
+        fq = self.feature if query_feat is None else query_feat
+        sim = torch.sigmoid(surfel_feat @ fq.T)
+        return sim * torch.exp(-0.5 * self.mahalanobis2(surfel_pos))
+
+    def distribution(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor,
+                     query_feat: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-surfel instance distribution l_ins(g) = softmax_q(A(q, g) / T): [N, Q]."""
+        if self.count == 0:
+            return surfel_feat.new_zeros(surfel_feat.shape[0], 0)
+        return torch.softmax(self.affinity(surfel_feat, surfel_pos, query_feat) / self.temperature, dim=-1)
+
+    def keep(self, mask: torch.Tensor) -> None:
+        """Drop queries where mask [Q] is False (dynamic query adjustment). Re-creates parameters."""
+        for name in ("feature", "mean", "log_diag", "offdiag"):
+            old = getattr(self, name)
+            setattr(self, name, nn.Parameter(old.detach()[mask].clone()))
+
+
+def _regularise(cov: torch.Tensor, rel: float = 1e-4, floor: float = 1e-6) -> torch.Tensor:
+    """Make covariances [Q, 3, 3] symmetric positive definite (degenerate masks give flat ones)."""
+    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    tr = torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1).clamp_min(0)
+    eye = torch.eye(3, dtype=cov.dtype, device=cov.device)
+    return cov + (rel * tr + floor).view(-1, 1, 1) * eye
+
+
+def init_from_points(groups: list[torch.Tensor], feat_dim: int, *, generator: torch.Generator | None = None,
+                     min_sigma: float = 0.02):
+    """Initial (feature [Q, F], mean [Q, 3], cov [Q, 3, 3]) from back-projected mask point sets.
+
+    groups: list of [P_i, 3] world points, one per 2D mask. Features are random unit vectors (queries
+    are told apart by their Gaussians first; features specialise during training).
+    """
+    q = len(groups)
+    feat = torch.randn(q, feat_dim, generator=generator)
+    feat = feat / feat.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    mean = torch.zeros(q, 3)
+    cov = torch.zeros(q, 3, 3)
+    for i, pts in enumerate(groups):
+        pts = pts.double()
+        mu = pts.mean(0)
+        c = torch.cov(pts.T) if pts.shape[0] > 1 else torch.zeros(3, 3, dtype=torch.float64)
+        # Inflate: a mask sees one side of an object; the Gaussian should cover the whole object.
+        c = c * 2.0 + (min_sigma ** 2) * torch.eye(3, dtype=torch.float64)
+        mean[i] = mu.float()
+        cov[i] = _regularise(c.unsqueeze(0))[0].float()
+    return feat, mean, cov

@@ -1,0 +1,132 @@
+"""Panoptic building blocks: Hungarian matching, affinity, query pruning, COCO panoptic encoding."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from psimap.panoptic.adjust import duplicate_queries, iom_matrix, useless_queries
+from psimap.panoptic.coco import STUFF_OFFSET, decode_rgb, encode_rgb, write_coco_panoptic
+from psimap.panoptic.matching import hungarian_match, masks_from_ids, matched_mask_loss
+from psimap.panoptic.queries import InstanceQueries, init_from_points
+
+
+def _blocks(h=12, w=12):
+    ids = torch.zeros(h, w, dtype=torch.long)
+    ids[:6, :6] = 7
+    ids[6:, :6] = 3
+    ids[:, 8:] = 11
+    return ids
+
+
+def test_masks_from_ids_and_empty_frame():
+    masks, ids = masks_from_ids(_blocks())
+    assert ids.tolist() == [3, 7, 11]
+    assert masks.shape == (3, 12, 12) and int(masks.sum()) == 36 + 36 + 48
+    empty, none = masks_from_ids(torch.zeros(4, 5, dtype=torch.long))
+    assert empty.shape == (0, 4, 5) and none.numel() == 0
+
+
+def test_hungarian_recovers_permutation_and_rejects_non_overlap():
+    masks, _ = masks_from_ids(_blocks())
+    target = masks.flatten(1).float()                       # [3, P]
+    perm = [2, 0, 1]
+    prob = torch.full((4, target.shape[1]), 0.02)
+    for q, m in enumerate(perm):
+        prob[q] = target[m] * 0.9 + 0.05                     # query q renders mask perm[q]
+    # query 3 covers only pixels no mask has: must not be matched
+    prob[3] = 0.02
+    prob[3, :2] = 0.0
+    m = hungarian_match(prob, target)
+    got = dict(zip(m.query_idx.tolist(), m.mask_idx.tolist()))
+    assert got == {0: 2, 1: 0, 2: 1}
+
+
+def test_hungarian_no_masks_and_no_queries():
+    prob = torch.rand(3, 10)
+    m = hungarian_match(prob, torch.zeros(0, 10))
+    assert m.query_idx.numel() == 0
+    p = prob.clone().requires_grad_(True)
+    loss = matched_mask_loss(p, torch.zeros(0, 10), m)
+    loss.backward()
+    assert float(loss.detach()) == 0.0 and torch.all(p.grad == 0)
+    assert hungarian_match(torch.zeros(0, 10), torch.ones(2, 10)).query_idx.numel() == 0
+
+
+def test_matched_loss_decreases_toward_target():
+    target = torch.tensor([[1.0, 1.0, 0.0, 0.0]])
+    m = hungarian_match(torch.tensor([[0.6, 0.6, 0.4, 0.4]]), target, reject_dice=1.0)
+    good = matched_mask_loss(torch.tensor([[0.95, 0.95, 0.05, 0.05]]), target, m)
+    bad = matched_mask_loss(torch.tensor([[0.6, 0.6, 0.4, 0.4]]), target, m)
+    assert float(good) < float(bad) * 0.5
+
+
+def test_affinity_and_distribution():
+    f = torch.eye(3) * 4.0
+    groups = [torch.randn(50, 3) * 0.05 + torch.tensor(c) for c in ([0, 0, 0], [1.0, 0, 0], [0, 1.0, 0])]
+    feat, mean, cov = init_from_points(groups, 3, generator=torch.Generator().manual_seed(0))
+    q = InstanceQueries(f, mean, cov, temperature=0.05)
+    pts = mean.clone()
+    a = q.affinity(f, pts)                                   # surfel i sits at query i's centre
+    assert a.shape == (3, 3)
+    assert torch.allclose(torch.diagonal(a), torch.sigmoid(torch.tensor(16.0)), atol=1e-4)
+    far = q.affinity(f, pts + 10.0)
+    assert float(far.max()) < 1e-6
+    d = q.distribution(f, pts)
+    assert torch.allclose(d.sum(-1), torch.ones(3), atol=1e-5)
+    assert d.argmax(-1).tolist() == [0, 1, 2] and float(d.diagonal().min()) > 0.9
+    # covariance stays positive definite for a degenerate (flat, 2-point) mask
+    feat2, mean2, cov2 = init_from_points([torch.tensor([[0.0, 0, 0], [1.0, 0, 0]])], 3)
+    q2 = InstanceQueries(feat2, mean2, cov2)
+    assert bool(torch.all(torch.linalg.eigvalsh(q2.cov()) > 0))
+
+
+def test_frustum_attention_shapes_and_gradients():
+    g = torch.Generator().manual_seed(1)
+    feat, mean, cov = init_from_points([torch.randn(20, 3, generator=g) for _ in range(4)], 8, generator=g)
+    q = InstanceQueries(feat, mean, cov, scene_scale=2.0)
+    sf = torch.randn(30, 8, generator=g, requires_grad=True)
+    out = q.attend(sf, torch.randn(30, 3, generator=g))
+    assert out.shape == (4, 8)
+    assert torch.allclose(out, q.feature)                    # gate starts closed
+    (out.sum() + q.gate * 0).backward()
+    with torch.no_grad():
+        q.gate.fill_(1.0)
+    out2 = q.attend(sf, torch.randn(30, 3, generator=g))
+    assert not torch.allclose(out2, q.feature)
+    assert q.attend(sf[:0], torch.zeros(0, 3)).shape == (4, 8)   # nothing visible
+
+
+def test_iom_and_duplicate_pruning():
+    n = 100
+    masks = torch.zeros(n, 4, dtype=torch.bool)
+    masks[:60, 0] = True        # big object
+    masks[10:30, 1] = True      # part of the big object (duplicate)
+    masks[70:90, 2] = True      # another object
+    masks[55:75, 3] = True      # straddles two: IoM 0.25 each -> kept
+    iom = iom_matrix(masks)
+    assert iom[1, 0] == pytest.approx(1.0) and iom[0, 1] == pytest.approx(20 / 60)
+    drop = duplicate_queries(masks, threshold=0.6)
+    assert drop.tolist() == [False, True, False, False]
+
+
+def test_useless_queries():
+    matched = torch.tensor([10, 0, 1, 0])
+    visible = torch.tensor([12, 9, 20, 1])
+    assert useless_queries(matched, visible, min_rate=0.1).tolist() == [False, True, True, False]
+
+
+def test_coco_panoptic_roundtrip(tmp_path):
+    seg = np.array([[0, 5, STUFF_OFFSET + 1], [70000, 5, 3]])
+    assert np.array_equal(decode_rgb(encode_rgb(seg)), seg)
+    classes = [{"id": 1, "name": "floor", "isthing": False}, {"id": 2, "name": "chair", "isthing": True}]
+    inst = np.array([[0, 4, 4], [0, 9, 9]])
+    sem = np.array([[1, 2, 2], [0, 2, 1]])          # a class flip on instance 9 is overruled by the vote
+    path = write_coco_panoptic(tmp_path, [("f0", inst, sem), ("f1", inst, sem)], classes, {4: 2, 9: 2})
+    data = json.loads(path.read_text())
+    assert [c["id"] for c in data["categories"]] == [1, 2]
+    segs = {s["id"]: s["category_id"] for s in data["annotations"][0]["segments_info"]}
+    assert segs == {4: 2, 9: 2, STUFF_OFFSET + 1: 1}
+    from PIL import Image
+    png = decode_rgb(np.asarray(Image.open(tmp_path / "f1.png")))
+    assert png[0, 1] == 4 and png[1, 2] == 9 and png[0, 0] == STUFF_OFFSET + 1
