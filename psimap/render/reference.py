@@ -150,11 +150,16 @@ def rasterize_reference(proj: Projected, opacities: torch.Tensor, colors: torch.
     evaluated = 0
     i = 0
     n_chunks = 0
+    chunks = []
     while i < len(active_counts):
-        L = active_counts[i]
-        size = max(1, chunk_evals // (TILE * TILE * L))
-        tids = active[i:i + size]
+        size = max(1, chunk_evals // (TILE * TILE * active_counts[i]))
+        chunks.append((active[i:i + size], active_counts[i]))
         i += size
+    if not chunks:
+        # Nothing binned: one empty batch keeps the outputs attached to the inputs' graph, so a loss
+        # on an empty view still backpropagates (zero gradients) instead of raising.
+        chunks.append((active, 1))
+    for tids, L in chunks:
         n_chunks += 1
         tx, ty = tids % bins.tiles_x, tids // bins.tiles_x
         px = tx[:, None] * TILE + local % TILE                     # [B, 256]
@@ -167,7 +172,7 @@ def rasterize_reference(proj: Projected, opacities: torch.Tensor, colors: torch.
         evaluated += int((inside.sum(1) * counts[tids]).sum())
         args = (px.to(dtype), py.to(dtype), proj.T[sid], proj.center[sid], proj.depth_key[sid],
                 proj.normal_c[sid], opacities[sid], colors[sid], features[sid], real)
-        if need_grad and len(active_counts) > size:
+        if need_grad and len(chunks) > 1:
             outs = checkpoint(blend_tiles, *args, near, far, topk, use_reentrant=False)
         else:
             outs = blend_tiles(*args, near, far, topk)
@@ -179,14 +184,11 @@ def rasterize_reference(proj: Projected, opacities: torch.Tensor, colors: torch.
     names = ["rgb", "alpha", "depth_num", "median", "normal", "distortion", "features"]
     widths = [3, None, None, None, 3, None, C]
     full = {}
-    pix = torch.cat(pix_chunks) if pix_chunks else torch.zeros(0, dtype=torch.long, device=device)
+    pix = torch.cat(pix_chunks)
     for k, (name, c) in enumerate(zip(names, widths)):
         shape = (hw,) if c is None else (hw, c)
         base = torch.zeros(shape, dtype=dtype, device=device)
-        if pix_chunks:
-            full[name] = base.index_copy(0, pix, torch.cat([o[k] for o in out_chunks]))
-        else:
-            full[name] = base
+        full[name] = base.index_copy(0, pix, torch.cat([o[k] for o in out_chunks]))
     alpha = full["alpha"]
     rgb = full["rgb"]
     if background is not None:
