@@ -162,26 +162,36 @@ def _place_furniture(kind: str, lay: Layout, rng: np.random.Generator, iid: int)
 def _place_small(kind: str, lay: Layout, rng: np.random.Generator, iid: int) -> Placed | None:
     furniture_supports = [(o, s) for o in lay.objects if o.shape.kind in S.FURNITURE
                           for s in _world_supports(o)]
+    boxes = [p for p in lay.objects if p.shape.kind == "box"]
     for attempt in range(40):
-        on_floor = not furniture_supports or rng.random() < 0.25
-        if on_floor:
+        touching = None
+        if boxes and kind != "mug" and rng.random() < 0.45:
+            # Touch an existing box, on whatever it stands on.
+            touching = boxes[int(rng.integers(len(boxes)))]
+            sup_id, z = touching.support, float(touching.xyz[2])
+            sup_rect, clear = None, math.inf
+            for o, (rect_, z_, clear_) in furniture_supports:
+                if o.instance_id == sup_id and abs(z_ - z) < 1e-9:
+                    sup_rect, clear = rect_, clear_
+        elif not furniture_supports or rng.random() < 0.25:
             sup_id, sup_rect, z, clear = 0, None, 0.0, math.inf
         else:
             o, (sup_rect, z, clear) = furniture_supports[int(rng.integers(len(furniture_supports)))]
             sup_id = o.instance_id
+        on_floor = sup_id == 0
         if clear < 0.08:
             continue
         shape = S.SMALL_BUILDERS[kind](rng, max_height=clear - 0.02)
         if shape.height > clear - 0.015:
             continue
-        neighbours = [p for p in lay.objects if p.support == sup_id and p.shape.kind in S.SMALL]
-        boxes = [p for p in neighbours if p.shape.kind == "box"]
-        touching = None
+        # Objects on the same surface (a shelf has several, told apart by height).
+        neighbours = [p for p in lay.objects if p.support == sup_id and p.shape.kind in S.SMALL
+                      and abs(p.xyz[2] - z) < 1e-9]
         xy = None
         yaw = 0.0 if shape.round else rng.uniform(0, 2 * math.pi)
-        if boxes and kind != "mug" and rng.random() < 0.5:
-            # Touch an existing box: flush against one of its side faces.
-            b = boxes[int(rng.integers(len(boxes)))]
+        if touching is not None:
+            # Flush against one of the box's side faces.
+            b = touching
             k = int(rng.integers(4))
             axis, sign = k // 2, (1 if k % 2 else -1)
             lat = 1 - axis
@@ -198,15 +208,12 @@ def _place_small(kind: str, lay: Layout, rng: np.random.Generator, iid: int) -> 
             off = np.zeros(2)
             off[axis], off[lat] = sign * reach, lat_off
             xy = b.xyz[:2] + _rot2(b.yaw) @ off
-            touching = b
         elif on_floor:
             xy = rng.uniform([-lay.half_x, -lay.half_y], [lay.half_x, lay.half_y])
         else:
             c, h, syaw = sup_rect
             # Uniform over the support, then kept only if the whole footprint lies on it.
             xy = c + _rot2(syaw) @ (rng.uniform(-1, 1, 2) * h)
-        if xy is None:
-            continue
         rect = (np.asarray(xy), np.asarray(shape.half), yaw)
         if on_floor:
             if not _floor_spot_ok(lay, rect):
@@ -242,7 +249,7 @@ def make_layout(rng: np.random.Generator, n_objects: int | None = None, ceiling:
     n = int(rng.integers(5, 16)) if not n_objects else int(n_objects)
     if n < 1:
         raise PsimapError(f"number of objects must be >= 1, got {n}")
-    n_furn = int(np.clip(rng.integers(2, 6), 1, max(1, n - 2)))
+    n_furn = int(np.clip(rng.integers(2, 7), 1, max(1, n - 2)))
     kinds = list(rng.choice(S.FURNITURE, size=n_furn, p=[0.3, 0.25, 0.2, 0.25]))
     if not any(k in ("table", "shelf", "cabinet") for k in kinds):
         kinds[0] = "table"

@@ -43,6 +43,7 @@ def noisy_depth(depth: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Gen
     p = p or DepthNoise()
     z = np.asarray(depth, dtype=np.float64)
     valid = (z > 0) & np.isfinite(z)
+    z = np.where(valid, z, 0.0)  # NaN / inf / negative: invalid, and kept out of the arithmetic
     out = np.where(valid, z + rng.standard_normal(z.shape) * depth_sigma(z, p), 0.0)
     bad = ~valid | (z < p.min_range) | (z > p.max_range) | (cos_incidence < p.grazing_cos)
     # Depth edges: a real sensor loses the pixels where the surface jumps (shadowing, mixed pixels).
@@ -50,7 +51,8 @@ def noisy_depth(depth: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Gen
     jump = np.zeros(z.shape, dtype=bool)
     for axis in (-1, -2):
         a = np.swapaxes(zc, axis, -1)
-        rel = np.abs(np.diff(a, axis=-1)) / np.minimum(a[..., 1:], a[..., :-1])
+        with np.errstate(invalid="ignore"):  # inf - inf between two invalid pixels
+            rel = np.abs(np.diff(a, axis=-1)) / np.minimum(a[..., 1:], a[..., :-1])
         e = np.nan_to_num(rel, nan=0.0, posinf=0.0) > p.edge_jump
         edge = np.zeros(a.shape, dtype=bool)
         edge[..., 1:] |= e
