@@ -47,6 +47,9 @@ class EvalOptions:
 class DemoOptions:
     out: str = opt("psimap_demo", "output folder")
     seed: int = opt(0, "random seed")
+    frames: int = opt(60, "frames of the generated synthetic scene")
+    width: int = opt(160, "image width of the generated scene")
+    height: int = opt(120, "image height of the generated scene")
 
 
 @dataclass
