@@ -131,9 +131,17 @@ def _gauss_terms(covs: np.ndarray, weights: np.ndarray):
     return inv, np.log(np.maximum(weights, 1e-300)) - 0.5 * logdet
 
 
-def _loglik(d: np.ndarray, inv: np.ndarray, const: np.ndarray) -> np.ndarray:
-    """d [..., D] offsets, inv [..., D, D], const [...] -> log-likelihood [...] (up to a constant)."""
-    return const - 0.5 * np.einsum("...i,...ij,...j->...", d, inv, d)
+def _loglik(d: np.ndarray, inv: np.ndarray, const: np.ndarray, comp: np.ndarray) -> np.ndarray:
+    """Log-likelihood (up to a constant) of offsets d [..., D] under components comp [...]:
+    const[comp] - 0.5 d^T inv[comp] d, with inv [K, D, D] symmetric, const [K]. The quadratic form
+    is expanded entry by entry so only [...]-sized columns are gathered, never [..., D, D]."""
+    D = d.shape[-1]
+    q = np.zeros(d.shape[:-1])
+    for i in range(D):
+        q += inv[:, i, i][comp] * d[..., i] * d[..., i]
+        for j in range(i + 1, D):
+            q += 2.0 * inv[:, i, j][comp] * d[..., i] * d[..., j]
+    return const[comp] - 0.5 * q
 
 
 def _assign_spatial(pts, means, covs, weights, candidates, exclude=None, chunk=100_000):
@@ -153,7 +161,7 @@ def _assign_spatial(pts, means, covs, weights, candidates, exclude=None, chunk=1
         p = pts[s:s + chunk]
         _, nn = tree.query(p, k=k)
         nn = nn.reshape(len(p), k)
-        ll = _loglik(p[:, None, :] - means[ids][nn], inv[nn], const[nn])
+        ll = _loglik(p[:, None, :] - means[ids][nn], inv, const, nn)
         out[s:s + chunk] = ids[nn[np.arange(len(p)), np.argmax(ll, axis=1)]]
     return out
 
@@ -183,11 +191,22 @@ def _auto_voxel(xyz: np.ndarray, diag: float) -> float:
     return max(spacing, math.sqrt(area / _AUTO_MAX_POINTS))
 
 
+def _compact(labels: np.ndarray, K: int) -> np.ndarray:
+    """Renumber labels [N] in 0..K-1 to 0..K'-1 over the labels present, keeping their order (O(N))."""
+    present = np.bincount(labels, minlength=K) > 0
+    return (np.cumsum(present) - 1)[labels].astype(np.int64)
+
+
 def _seed_labels(xyz: np.ndarray, cell_size: float, min_points: int) -> np.ndarray:
     """One component per occupied grid cell of side `cell_size`; cells with fewer than
     `min_points` points are merged into the nearest populous cell."""
     cell = np.floor((xyz - xyz.min(axis=0)) / cell_size).astype(np.int64)
-    _, labels = np.unique(cell, axis=0, return_inverse=True)
+    dims = cell.max(axis=0) + 1
+    if np.prod(dims.astype(np.float64)) < 2 ** 62:
+        key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+        _, labels = np.unique(key, return_inverse=True)
+    else:
+        _, labels = np.unique(cell, axis=0, return_inverse=True)
     labels = labels.ravel()
     counts = np.bincount(labels)
     small = counts < min_points
@@ -201,7 +220,7 @@ def _seed_labels(xyz: np.ndarray, cell_size: float, min_points: int) -> np.ndarr
         _, nn = cKDTree(centres[big]).query(xyz[moved])
         labels = labels.copy()
         labels[moved] = big[nn]
-        _, labels = np.unique(labels, return_inverse=True)
+        labels = _compact(labels, K)
     elif small.all():
         labels = np.zeros(len(xyz), np.int64)
     return labels.astype(np.int64)
@@ -325,8 +344,8 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
                 break                              # a child emptied: keep the last assignment
             c_covs = _regularise(c_covs, eps_xyz)
             inv, const = _gauss_terms(c_covs, c_counts / np.repeat(c_counts.reshape(S, 2).sum(1), 2))
-            ll0 = _loglik(Xq - c_means[2 * pair], inv[2 * pair], const[2 * pair])
-            ll1 = _loglik(Xq - c_means[2 * pair + 1], inv[2 * pair + 1], const[2 * pair + 1])
+            ll0 = _loglik(Xq - c_means[2 * pair], inv, const, 2 * pair)
+            ll1 = _loglik(Xq - c_means[2 * pair + 1], inv, const, 2 * pair + 1)
             new_side = (ll1 > ll0).astype(np.int64)
             if np.array_equal(new_side, side):
                 break
@@ -359,8 +378,7 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
             moved = small[labels]
             labels[moved] = _assign_spatial(X[moved, :3], means[:, :3], covs[:, :3, :3], counts / N,
                                             _CANDIDATES, exclude=counts < min_points)
-        _, labels = np.unique(labels, return_inverse=True)   # drop emptied components
-        labels = labels.ravel()
+        labels = _compact(labels, K)                     # drop emptied components
         K = int(labels.max()) + 1
         counts, means, covs, _ = _moments(X, labels, K)
         covs = _regularise(covs, eps_xyz)
