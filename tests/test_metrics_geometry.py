@@ -115,6 +115,28 @@ def test_unseen_gt_surface_is_left_out_of_completeness_and_recall():
     assert culled["accuracy"] == unculled["accuracy"] == pytest.approx(0.0, abs=1e-5)
 
 
+def test_partly_seen_faces_are_culled_point_by_point():
+    # One 6 x 6 m quad (2 faces, both hit) of which the camera sees only a 3.2 x 2.4 m window, and
+    # a 0.8 m occluder at half the distance hiding a 1.6 m square of that window.
+    K, c2w, w, h = camera()           # f 40 px, 64 x 48: at z = 2 the view is 3.2 x 2.4 m
+    window = quad(2.0, half=1.0)
+    window.vertices[:, 0] *= 1.6
+    window.vertices[:, 1] *= 1.2
+    big = quad(2.0, half=3.0)
+    assert visible_faces(big, [camera()]).all()
+    m = geometry_metrics(window, big, cameras=[camera()])
+    # A reconstruction of exactly the seen window is complete, though both GT faces are "hit".
+    assert m["completeness"] < 1e-4 and m["recall"] == 1.0
+    assert m["gt_seen_fraction"] == pytest.approx(7.68 / 36, rel=0.03)
+    occluded = trimesh.util.concatenate([big, quad(1.0, half=0.4)])
+    m = geometry_metrics(window, occluded, cameras=[camera()])
+    seen_far, seen_occ = 7.68 - 1.6 ** 2, 0.64
+    assert m["gt_seen_fraction"] == pytest.approx((seen_far + seen_occ) / 36.64, rel=0.03)
+    # The occluder (1 m from the window) is the only seen GT surface the prediction lacks.
+    assert m["completeness"] == pytest.approx(seen_occ / (seen_far + seen_occ) * 1.0, rel=0.05)
+    assert m["recall"] == pytest.approx(seen_far / (seen_far + seen_occ), abs=0.01)
+
+
 def test_degenerate_inputs():
     gt = quad(0.0)
     empty = trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False)

@@ -7,7 +7,8 @@ sampling doubles until the Monte-Carlo standard error of every reported figure i
 (capped at `max_samples`).
 
 Ground-truth culling: completeness and recall only use GT surface seen by at least one camera
-(`visible_faces`); accuracy and precision use the whole GT mesh.
+(`visible_faces`: faces hit by some pixel ray; `CameraVisibility.points_seen` then drops samples on
+the unseen part of a partly seen face); accuracy and precision use the whole GT mesh.
 """
 from __future__ import annotations
 
@@ -48,9 +49,9 @@ def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator,
-                   face_mask: np.ndarray | None = None) -> np.ndarray:
+                   face_mask: np.ndarray | None = None, return_faces: bool = False):
     """n points [n,3] uniformly distributed over the area of the faces [F,3] (optionally only faces
-    where face_mask [F] is True)."""
+    where face_mask [F] is True); with return_faces also the face index [n] of each point."""
     areas = face_areas(vertices, faces)
     if face_mask is not None:
         areas = np.where(face_mask, areas, 0.0)
@@ -63,8 +64,9 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
     r1 = np.sqrt(rng.random(n))
     r2 = rng.random(n)
     tri = vertices[faces[idx]]
-    return ((1 - r1)[:, None] * tri[:, 0] + (r1 * (1 - r2))[:, None] * tri[:, 1]
-            + (r1 * r2)[:, None] * tri[:, 2])
+    pts = ((1 - r1)[:, None] * tri[:, 0] + (r1 * (1 - r2))[:, None] * tri[:, 1]
+           + (r1 * r2)[:, None] * tri[:, 2])
+    return (pts, idx) if return_faces else pts
 
 
 def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
@@ -95,28 +97,97 @@ def camera_rays(K: np.ndarray, c2w: np.ndarray, width: int, height: int) -> np.n
     return np.concatenate([origins, d_world], axis=1).astype(np.float32)
 
 
+class CameraVisibility:
+    """What the cameras see of a mesh: the first hit of every pixel ray of every camera.
+
+    mesh: trimesh-like (or (vertices [V,3], faces [F,3])); cameras: iterable of
+    (K [3,3], c2w [4,4] OpenCV camera-to-world, width, height). max_depth: ignore hits farther than
+    this z-depth (a depth sensor's range). Per-camera hit maps are cached while they fit in
+    `cache_bytes`, else re-cast when needed.
+    """
+
+    def __init__(self, mesh, cameras, *, max_depth: float | None = None, progress: bool = False,
+                 cache_bytes: int = 256 << 20):
+        self.vertices, self.faces = _mesh_arrays(mesh, "visibility mesh")
+        self.cameras = [(np.asarray(K, np.float64), np.asarray(c2w, np.float64), int(w), int(h))
+                        for K, c2w, w, h in cameras]
+        self.max_depth = max_depth
+        self.progress = progress
+        self._scene = _raycasting_scene(self.vertices, self.faces)
+        pixels = sum(w * h for _, _, w, h in self.cameras)
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] | None = (
+            {} if pixels * 8 <= cache_bytes else None)
+
+    def hits(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Camera i: hit face [H, W] int64 (-1 = none or beyond max_depth) and z-depth [H, W]."""
+        if self._cache is not None and i in self._cache:
+            return self._cache[i]
+        K, c2w, w, h = self.cameras[i]
+        out = self._scene.cast_rays(camera_rays(K, c2w, w, h))
+        ids = out["primitive_ids"].numpy().astype(np.int64)
+        ids[ids == 0xFFFFFFFF] = -1  # RaycastingScene.INVALID_ID
+        depth = out["t_hit"].numpy().astype(np.float32)
+        if self.max_depth is not None:
+            ids[depth > self.max_depth] = -1
+        res = (ids.reshape(h, w), depth.reshape(h, w))
+        if self._cache is not None:
+            self._cache[i] = res
+        return res
+
+    def _views(self, desc: str):
+        from tqdm import tqdm
+
+        return tqdm(range(len(self.cameras)), desc=desc, unit="view",
+                    disable=None if self.progress else True)
+
+    def faces_seen(self) -> np.ndarray:
+        """[F] bool: faces that are the first hit of at least one pixel ray."""
+        seen = np.zeros(len(self.faces), dtype=bool)
+        for i in self._views("visibility"):
+            ids = self.hits(i)[0]
+            seen[ids[ids >= 0]] = True
+        return seen
+
+    def points_seen(self, points: np.ndarray, point_faces: np.ndarray) -> np.ndarray:
+        """[N] bool: which surface points [N,3] (lying on faces point_faces [N]) some camera sees.
+
+        A face hit by a ray may be only partly seen (a wall behind a shelf), so a point is tested
+        on its own: it projects into a camera's image, and the ray of that pixel hits the point's
+        own face or a surface within two pixel footprints of the point's depth (not an occluder).
+        """
+        seen = np.zeros(len(points), dtype=bool)
+        for i in self._views("visible points"):
+            todo = np.flatnonzero(~seen)
+            if todo.size == 0:
+                break
+            K, c2w, w, h = self.cameras[i]
+            w2c = np.linalg.inv(c2w)
+            pc = points[todo] @ w2c[:3, :3].T + w2c[:3, 3]
+            z = pc[:, 2]
+            front = z > 1e-9
+            zs = np.where(front, z, 1.0)
+            u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 1] * pc[:, 1] / zs + K[0, 2]).astype(np.int64)
+            v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2]).astype(np.int64)
+            inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            if not inside.any():
+                continue
+            ids, depth = self.hits(i)
+            idx, uu, vv = todo[inside], u[inside], v[inside]
+            hit_face, hit_z = ids[vv, uu], depth[vv, uu]
+            tol = 2.0 * z[inside] / min(K[0, 0], K[1, 1])
+            ok = (hit_face == point_faces[idx]) | ((hit_face >= 0) & (np.abs(hit_z - z[inside]) <= tol))
+            seen[idx[ok]] = True
+        return seen
+
+
 def visible_faces(mesh, cameras, *, max_depth: float | None = None, progress: bool = False) -> np.ndarray:
     """Which faces of `mesh` are the first hit of at least one pixel ray of at least one camera.
 
     mesh: trimesh-like (or (vertices [V,3], faces [F,3])); cameras: iterable of
     (K [3,3], c2w [4,4] OpenCV camera-to-world, width, height). max_depth: ignore hits farther than
-    this z-depth (a depth sensor's range). Returns [F] bool.
+    this z-depth. Returns [F] bool.
     """
-    vertices, faces = _mesh_arrays(mesh, "visible_faces")
-    scene = _raycasting_scene(vertices, faces)
-    seen = np.zeros(len(faces), dtype=bool)
-    from tqdm import tqdm
-
-    invalid = np.uint32(0xFFFFFFFF)  # RaycastingScene.INVALID_ID
-    for K, c2w, width, height in tqdm(list(cameras), desc="visibility", unit="view",
-                                      disable=None if progress else True):
-        hits = scene.cast_rays(camera_rays(K, c2w, int(width), int(height)))
-        ids = hits["primitive_ids"].numpy()
-        keep = ids != invalid
-        if max_depth is not None:
-            keep &= hits["t_hit"].numpy() <= max_depth
-        seen[ids[keep].astype(np.int64)] = True
-    return seen
+    return CameraVisibility(mesh, cameras, max_depth=max_depth, progress=progress).faces_seen()
 
 
 @dataclass
@@ -125,63 +196,86 @@ class SurfaceDistances:
 
     pred_to_gt: np.ndarray      # [Np] distance of points sampled on the prediction to the GT mesh
     gt_to_pred: np.ndarray      # [Ng] distance of points sampled on seen GT surface to the prediction
+    gt_seen_fraction: float = 1.0   # share of GT area the GT -> pred samples were drawn from
 
 
-def _adaptive_distances(vertices, faces, other_scene, rng, face_mask, thresholds, max_samples,
-                        min_samples, rel_tol, abs_tol, frac_tol) -> np.ndarray:
-    """Sample on one mesh and measure exact distances to the other, doubling the sample count until
-    the standard error of the mean distance is within max(rel_tol * mean, abs_tol) and that of every
-    below-threshold fraction within frac_tol (or max_samples is reached)."""
+def _adaptive_distances(vertices, faces, other_scene, rng, face_mask, point_filter, thresholds,
+                        max_samples, min_samples, rel_tol, abs_tol, frac_tol):
+    """Sample on one mesh (faces where face_mask, points where point_filter(points, faces)) and
+    measure exact distances to the other, doubling the sample count until the standard error of the
+    mean distance is within max(rel_tol * mean, abs_tol) and that of every below-threshold fraction
+    within frac_tol (or max_samples is reached). Returns (distances [n], accepted share of draws)."""
     import open3d as o3d
 
     chunks: list[np.ndarray] = []
-    total, batch = 0, min(min_samples, max_samples)
-    while batch > 0:
-        pts = sample_surface(vertices, faces, batch, rng, face_mask)
-        chunks.append(other_scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
-                      .astype(np.float64))
-        total += batch
+    kept = drawn = 0
+    target = min(min_samples, max_samples)
+    while True:
+        # Rejection keeps the samples area-uniform over the accepted surface; draw enough extra.
+        rate = kept / drawn if kept else 1.0
+        n = int(np.ceil((target - kept) / max(rate, 0.02)))
+        pts, fid = sample_surface(vertices, faces, n, rng, face_mask, return_faces=True)
+        drawn += n
+        if point_filter is not None:
+            pts = pts[point_filter(pts, fid)]
+            if kept == 0 and len(pts) == 0 and drawn >= 50 * max(min_samples, 1000):
+                raise PsimapError("no ground-truth surface is seen by any camera")
+        pts = pts[: target - kept]
+        if len(pts):
+            chunks.append(other_scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32)))
+                          .numpy().astype(np.float64))
+            kept += len(pts)
+        if kept < target:
+            continue
         d = np.concatenate(chunks)
-        mean_se = d.std() / np.sqrt(total)
-        frac_ok = all(np.sqrt(max(p * (1 - p), 1.0 / total) / total) <= frac_tol
+        mean_se = d.std() / np.sqrt(kept)
+        frac_ok = all(np.sqrt(max(p * (1 - p), 1.0 / kept) / kept) <= frac_tol
                       for p in ((d < t).mean() for t in thresholds))
-        if mean_se <= max(rel_tol * d.mean(), abs_tol) and frac_ok:
-            break
-        batch = min(total, max_samples - total)  # double the total, within the cap
-    return np.concatenate(chunks)
+        if (mean_se <= max(rel_tol * d.mean(), abs_tol) and frac_ok) or target >= max_samples:
+            return d, kept / drawn
+        target = min(2 * target, max_samples)
 
 
-def surface_distances(pred, gt, *, gt_visible: np.ndarray | None = None, thresholds=(0.05,),
-                      max_samples: int = 200_000, min_samples: int = 10_000, seed: int = 0,
-                      rel_tol: float = 0.01, abs_tol: float = 1e-4, frac_tol: float = 0.0025
-                      ) -> SurfaceDistances:
+def surface_distances(pred, gt, *, gt_visible: np.ndarray | None = None, gt_point_filter=None,
+                      thresholds=(0.05,), max_samples: int = 200_000, min_samples: int = 10_000,
+                      seed: int = 0, rel_tol: float = 0.01, abs_tol: float = 1e-4,
+                      frac_tol: float = 0.0025) -> SurfaceDistances:
     """Distances of points sampled on `pred` to `gt` and on the seen part of `gt` to `pred`.
 
-    pred, gt: trimesh-like meshes (or (vertices, faces)); gt_visible: [F_gt] bool mask of GT faces
-    used for the GT -> pred direction (None = all). Error budget: see module doc.
+    pred, gt: trimesh-like meshes (or (vertices, faces)). The GT -> pred samples are drawn from GT
+    faces where gt_visible [F_gt] bool (None = all) and kept where gt_point_filter(points [N,3],
+    faces [N]) -> [N] bool (None = all), e.g. `CameraVisibility.points_seen`. Error budget: see the
+    module doc.
     """
     pv, pf = _mesh_arrays(pred, "predicted mesh")
     gv, gf = _mesh_arrays(gt, "ground-truth mesh")
     if not face_areas(pv, pf).sum() > 0:
         raise PsimapError("predicted mesh: all faces have zero area")
+    gt_areas = face_areas(gv, gf)
+    if not gt_areas.sum() > 0:
+        raise PsimapError("ground-truth mesh: all faces have zero area")
     if gt_visible is not None:
         gt_visible = np.asarray(gt_visible, dtype=bool)
         if gt_visible.shape != (len(gf),):
             raise PsimapError(f"gt_visible has shape {gt_visible.shape}, expected ({len(gf)},)")
-        if not (face_areas(gv, gf)[gt_visible]).sum() > 0:
+        if not gt_areas[gt_visible].sum() > 0:
             raise PsimapError("no ground-truth surface is seen by any camera")
     if max_samples < 1:
         raise PsimapError(f"max_samples must be positive, got {max_samples}")
     rng = np.random.default_rng(seed)
     budget = dict(thresholds=tuple(thresholds), max_samples=max_samples, min_samples=min_samples,
                   rel_tol=rel_tol, abs_tol=abs_tol, frac_tol=frac_tol)
-    d_pg = _adaptive_distances(pv, pf, _raycasting_scene(gv, gf), rng, None, **budget)
-    d_gp = _adaptive_distances(gv, gf, _raycasting_scene(pv, pf), rng, gt_visible, **budget)
-    return SurfaceDistances(pred_to_gt=d_pg, gt_to_pred=d_gp)
+    d_pg, _ = _adaptive_distances(pv, pf, _raycasting_scene(gv, gf), rng, None, None, **budget)
+    d_gp, rate = _adaptive_distances(gv, gf, _raycasting_scene(pv, pf), rng, gt_visible,
+                                     gt_point_filter, **budget)
+    seen_area = gt_areas[gt_visible].sum() if gt_visible is not None else gt_areas.sum()
+    return SurfaceDistances(pred_to_gt=d_pg, gt_to_pred=d_gp,
+                            gt_seen_fraction=float(seen_area * rate / gt_areas.sum()))
 
 
 def summarize(dist: SurfaceDistances, threshold: float = 0.05) -> dict:
-    """accuracy, completeness, chamfer_l1 (metres), precision, recall, f1 (fractions) at `threshold`."""
+    """accuracy, completeness, chamfer_l1 (metres), precision, recall, f1 (fractions) at
+    `threshold`, sample counts and the seen share of GT area."""
     acc = float(dist.pred_to_gt.mean())
     comp = float(dist.gt_to_pred.mean())
     precision = float((dist.pred_to_gt < threshold).mean())
@@ -189,31 +283,33 @@ def summarize(dist: SurfaceDistances, threshold: float = 0.05) -> dict:
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return {"accuracy": acc, "completeness": comp, "chamfer_l1": 0.5 * (acc + comp),
             "precision": precision, "recall": recall, "f1": float(f1), "threshold": float(threshold),
-            "n_pred_points": int(dist.pred_to_gt.size), "n_gt_points": int(dist.gt_to_pred.size)}
+            "n_pred_points": int(dist.pred_to_gt.size), "n_gt_points": int(dist.gt_to_pred.size),
+            "gt_seen_fraction": dist.gt_seen_fraction}
 
 
 def geometry_metrics(pred, gt, *, threshold: float = 0.05, cameras=None,
                      gt_visible: np.ndarray | None = None, max_samples: int = 200_000,
-                     seed: int = 0, progress: bool = False, return_distances: bool = False):
+                     seed: int = 0, max_depth: float | None = None, progress: bool = False,
+                     return_distances: bool = False):
     """Geometry metrics of mesh `pred` against mesh `gt` (both trimesh-like, metres).
 
-    GT culling: pass `cameras` (list of (K [3,3], c2w [4,4] OpenCV, width, height)) to restrict the
-    GT side of completeness / recall to faces seen by some camera, or a precomputed `gt_visible`
-    [F_gt] bool mask; with neither, the whole GT mesh is used. Returns the dict of `summarize`
-    (plus `gt_seen_fraction`, the seen share of GT area), and the `SurfaceDistances` too when
-    return_distances.
+    GT culling: pass `cameras` (list of (K [3,3], c2w [4,4] OpenCV, width, height); max_depth =
+    sensor range) to restrict the GT side of completeness / recall to surface seen by some camera:
+    samples are drawn on faces hit by a pixel ray and kept if a camera sees the point itself (a hit
+    face may be only partly visible); or pass a precomputed `gt_visible` [F_gt] bool face mask.
+    With neither, the whole GT mesh is used. Accuracy / precision always use the whole GT mesh.
+    Returns the dict of `summarize`, and the `SurfaceDistances` too when return_distances.
     """
-    if not threshold > 0:
+    if not (threshold > 0 and np.isfinite(threshold)):
         raise PsimapError(f"threshold must be positive, got {threshold}")
+    point_filter = None
     if gt_visible is None and cameras is not None:
-        gt_visible = visible_faces(gt, cameras, progress=progress)
-    dist = surface_distances(pred, gt, gt_visible=gt_visible, thresholds=(threshold,),
-                             max_samples=max_samples, seed=seed)
+        vis = CameraVisibility(gt, cameras, max_depth=max_depth, progress=progress)
+        gt_visible = vis.faces_seen()
+        point_filter = vis.points_seen
+    dist = surface_distances(pred, gt, gt_visible=gt_visible, gt_point_filter=point_filter,
+                             thresholds=(threshold,), max_samples=max_samples, seed=seed)
     out = summarize(dist, threshold)
-    gv, gf = _mesh_arrays(gt, "ground-truth mesh")
-    areas = face_areas(gv, gf)
-    out["gt_seen_fraction"] = (float(areas[gt_visible].sum() / areas.sum())
-                               if gt_visible is not None else 1.0)
     return (out, dist) if return_distances else out
 
 
