@@ -1,0 +1,253 @@
+"""Step 6: collision geometry, the cheapest kind that fits the mesh within a tolerance.
+
+Tried in order: primitive (sphere, box, cylinder) -> one convex hull -> convex decomposition
+(CoACD) with a capped hull count. A candidate fits when the symmetric Hausdorff distance between
+its surface and the mesh surface is within the tolerance. Every hull has at most 64 vertices
+(MuJoCo's and PhysX's comfortable limit), reduced by quadric simplification of the hull.
+Primitives matter: a ball whose collider is the convex hull of its faceted mesh rolls away on a
+level floor; as a sphere primitive it stays put.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MAX_HULL_VERTICES = 64
+
+
+@dataclass
+class Collision:
+    kind: str                      # "sphere" | "box" | "cylinder" | "hull" | "decomposition"
+    error: float                   # metres, symmetric Hausdorff distance collider <-> mesh
+    tolerance: float               # metres
+    # primitives: MJCF-style size (sphere [r], box [hx, hy, hz], cylinder [r, half-height]) and
+    # its pose in the world: transform [4, 4] (cylinder axis = local z)
+    size: np.ndarray | None = None
+    transform: np.ndarray | None = None
+    parts: list = field(default_factory=list)   # convex trimesh parts (world frame); primitives too
+
+    @property
+    def is_primitive(self) -> bool:
+        return self.kind in ("sphere", "box", "cylinder")
+
+    @property
+    def hull_count(self) -> int:
+        return 0 if self.is_primitive else len(self.parts)
+
+
+def default_tolerance(mesh, relative: float = 0.03, floor: float = 0.003) -> float:
+    """3 % of the bounding-box diagonal, at least 3 mm: below what a gripper or a settle notices."""
+    return max(floor, relative * float(np.linalg.norm(mesh.extents)))
+
+
+# ---------------------------------------------------------------- distances
+def _mesh_points(mesh, n: int, seed: int) -> np.ndarray:
+    from psimap.exporters.decimate import _sample
+
+    return _sample(mesh, n, seed)
+
+
+def _primitive_sdf(kind: str, size: np.ndarray, transform: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Unsigned distance of world points [P, 3] to the primitive's surface."""
+    local = (pts - transform[:3, 3]) @ transform[:3, :3]
+    if kind == "sphere":
+        return np.abs(np.linalg.norm(local, axis=1) - size[0])
+    if kind == "box":
+        q = np.abs(local) - size
+        outside = np.linalg.norm(np.maximum(q, 0), axis=1)
+        inside = np.minimum(q.max(axis=1), 0)
+        return np.abs(outside + inside)
+    if kind == "cylinder":
+        d = np.stack([np.linalg.norm(local[:, :2], axis=1) - size[0], np.abs(local[:, 2]) - size[1]], 1)
+        outside = np.linalg.norm(np.maximum(d, 0), axis=1)
+        inside = np.minimum(d.max(axis=1), 0)
+        return np.abs(outside + inside)
+    raise ValueError(kind)
+
+
+def primitive_mesh(kind: str, size: np.ndarray, transform: np.ndarray):
+    """A trimesh of the primitive (world frame) for writers that want geometry (GLB preview)."""
+    import trimesh
+
+    if kind == "sphere":
+        m = trimesh.creation.icosphere(subdivisions=2, radius=float(size[0]))
+    elif kind == "box":
+        m = trimesh.creation.box(extents=2 * np.asarray(size, float))
+    else:
+        m = trimesh.creation.cylinder(radius=float(size[0]), height=2 * float(size[1]), sections=32)
+    m.apply_transform(transform)
+    return m
+
+
+def _two_sided(mesh_pts: np.ndarray, coll_pts: np.ndarray, mesh_dist, coll_dist) -> float:
+    return float(max(coll_dist(mesh_pts).max(), mesh_dist(coll_pts).max()))
+
+
+# ---------------------------------------------------------------- primitive fits
+def _fit_primitives(mesh) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Candidate (kind, size, transform) primitives around the mesh (float64)."""
+    import trimesh
+
+    v = np.asarray(mesh.vertices, np.float64)
+    out = []
+    # sphere: least-squares centre, mean radius
+    try:
+        center, radius, _ = trimesh.nsphere.fit_nsphere(v)
+        T = np.eye(4)
+        T[:3, 3] = center
+        out.append(("sphere", np.array([radius]), T))
+    except Exception:
+        pass
+    # box: minimum-volume oriented bounding box
+    to_origin, extents = trimesh.bounds.oriented_bounds(mesh)
+    T = np.linalg.inv(to_origin)
+    out.append(("box", np.asarray(extents, float) / 2, T))
+    # cylinder: each OBB axis as candidate axis, circle fitted in the cross-section
+    for axis in range(3):
+        R = T[:3, :3].copy()
+        perm = [(axis + 1) % 3, (axis + 2) % 3, axis]
+        R = R[:, perm]
+        if np.linalg.det(R) < 0:
+            R[:, 0] *= -1
+        local = (v - T[:3, 3]) @ R
+        try:
+            c2, r, _ = trimesh.nsphere.fit_nsphere(local[:, :2])
+        except Exception:
+            continue
+        zmin, zmax = local[:, 2].min(), local[:, 2].max()
+        Tc = np.eye(4)
+        Tc[:3, :3] = R
+        Tc[:3, 3] = T[:3, 3] + R @ np.array([c2[0], c2[1], 0.5 * (zmin + zmax)])
+        out.append(("cylinder", np.array([r, 0.5 * (zmax - zmin)]), Tc))
+    return out
+
+
+# ---------------------------------------------------------------- hulls
+def limit_hull_vertices(part, max_vertices: int = MAX_HULL_VERTICES):
+    """Convex hull of `part` with at most `max_vertices` vertices (quadric-simplified hull)."""
+    import trimesh
+
+    hull = part.convex_hull
+    target = 2 * max_vertices - 4           # triangulated closed convex: F = 2V - 4
+    while len(hull.vertices) > max_vertices:
+        import fast_simplification
+
+        v, f = fast_simplification.simplify(np.asarray(hull.vertices, np.float64),
+                                            np.asarray(hull.faces, np.int32), target_count=target)
+        new = trimesh.convex.convex_hull(v)
+        if len(new.vertices) >= len(hull.vertices):   # no progress: keep the most extreme vertices
+            idx = _farthest_points(np.asarray(hull.vertices), max_vertices)
+            new = trimesh.convex.convex_hull(np.asarray(hull.vertices)[idx])
+        hull = new
+        target = max(8, int(target * 0.8))
+    return hull
+
+
+def _farthest_points(p: np.ndarray, k: int) -> np.ndarray:
+    c = p.mean(axis=0)
+    idx = [int(np.argmax(np.linalg.norm(p - c, axis=1)))]
+    d = np.linalg.norm(p - p[idx[0]], axis=1)
+    for _ in range(1, k):
+        i = int(np.argmax(d))
+        idx.append(i)
+        d = np.minimum(d, np.linalg.norm(p - p[i], axis=1))
+    return np.array(sorted(idx))
+
+
+def _inside_convex(hull, pts: np.ndarray, margin: float = 1e-9) -> np.ndarray:
+    """[P] bool: points inside a convex hull (all face planes' negative side, within margin)."""
+    n = np.asarray(hull.face_normals, np.float64)
+    o = np.asarray(hull.triangles[:, 0], np.float64)
+    return ((pts @ n.T) - np.einsum("fd,fd->f", n, o) <= margin).all(axis=1)
+
+
+def _coacd(mesh, threshold: float, max_hulls: int, seed: int, max_faces: int = 1000):
+    import coacd
+    import trimesh
+
+    src = mesh
+    if len(src.faces) > max_faces:      # CoACD's cost grows with faces; the fit tolerance is coarser
+        from psimap.exporters.decimate import simplify_to_count
+
+        src = simplify_to_count(mesh, max_faces)
+    try:
+        coacd.set_log_level("error")
+    except Exception:
+        pass
+    parts = coacd.run_coacd(coacd.Mesh(np.asarray(src.vertices, np.float64), np.asarray(src.faces, np.int64)),
+                            threshold=threshold, max_convex_hull=max_hulls, preprocess_mode="off",
+                            resolution=400, mcts_iterations=20, mcts_nodes=10, mcts_max_depth=2,
+                            seed=seed,
+                            max_ch_vertex=MAX_HULL_VERTICES)
+    out = [trimesh.Trimesh(np.asarray(v), np.asarray(f), process=True) for v, f in parts]
+    return [p for p in out if len(p.faces) >= 4]
+
+
+def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int = 8,
+                       allow_primitives: bool = True, samples: int = 4000, seed: int = 0,
+                       coacd_thresholds: tuple[float, ...] = (0.3, 0.15)) -> Collision:
+    """The cheapest collider within `tolerance` (metres) of `mesh` (watertight trimesh, world frame).
+
+    When nothing fits, the best decomposition found (at most `max_hulls` hulls) is returned with
+    its measured error; the report shows it.
+    """
+    from psimap.exporters.decimate import _dist_to
+
+    tol = default_tolerance(mesh) if tolerance is None else float(tolerance)
+    mesh_pts = _mesh_points(mesh, samples, seed)
+
+    def mesh_dist(p):
+        return _dist_to(mesh, p)
+
+    if allow_primitives:
+        best = None
+        for kind, size, T in _fit_primitives(mesh):
+            if not np.all(np.isfinite(size)) or np.any(size <= 0):
+                continue
+            pm = primitive_mesh(kind, size, T)
+            err = _two_sided(mesh_pts, _mesh_points(pm, samples, seed + 1), mesh_dist,
+                             lambda p: _primitive_sdf(kind, size, T, p))
+            vol = float(pm.volume)
+            if err <= tol and (best is None or vol < best[0]):
+                best = (vol, kind, size, T, err)
+        if best is not None:
+            _, kind, size, T, err = best
+            return Collision(kind, err, tol, size=size, transform=T, parts=[primitive_mesh(kind, size, T)])
+
+    def parts_error(parts):
+        # collider surface = union surface: a part's samples inside another part are interior
+        union = []
+        for i, p in enumerate(parts):
+            pts = _mesh_points(p, max(200, samples // len(parts)), seed + 2 + i)
+            for j, q in enumerate(parts):
+                if j != i:
+                    pts = pts[~_inside_convex(q, pts, -1e-6)]
+            union.append(pts)
+        union_pts = np.concatenate(union)
+        d = np.full(len(mesh_pts), np.inf)
+        for p in parts:
+            d = np.minimum(d, _dist_to(p, mesh_pts))
+        if len(parts) > 1:          # mesh points inside the union are covered
+            inside = np.zeros(len(mesh_pts), bool)
+            for p in parts:
+                inside |= _inside_convex(p, mesh_pts)
+            d[inside] = 0.0
+        coll_to_mesh = mesh_dist(union_pts).max() if len(union_pts) else 0.0
+        return float(max(d.max(), coll_to_mesh))
+
+    hull = limit_hull_vertices(mesh)
+    err = parts_error([hull])
+    if err <= tol:
+        return Collision("hull", err, tol, parts=[hull])
+    best = Collision("hull", err, tol, parts=[hull])
+    for thr in coacd_thresholds:
+        parts = [limit_hull_vertices(p) for p in _coacd(mesh, thr, max_hulls, seed)]
+        if not parts:
+            continue
+        err = parts_error(parts)
+        if err < best.error:
+            best = Collision("decomposition", err, tol, parts=parts)
+        if err <= tol:
+            break
+    return best

@@ -1,0 +1,170 @@
+"""Step 2: clean and repair an object mesh so that only sound, watertight geometry reaches a writer.
+
+Order: drop non-finite vertices and degenerate / duplicate faces -> keep the largest connected
+component(s) (floaters go) -> consistent outward orientation -> close small holes (pymeshlab) ->
+if still not watertight and a volume is needed, rebuild the surface with fTetWild (pytetwild) ->
+reject what is still degenerate (flat, sliver, no volume) with a reason instead of passing it on.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# A component is kept when its area is at least this fraction of the largest one: a scan's object
+# is one piece; pieces this small are floaters or reconstruction noise.
+KEEP_COMPONENT_AREA_FRACTION = 0.2
+
+
+@dataclass
+class RepairResult:
+    mesh: object | None            # trimesh.Trimesh or None when rejected
+    ok: bool
+    watertight: bool
+    reason: str = ""               # why it was rejected (empty when ok)
+    steps: list[str] = field(default_factory=list)   # what was done, for the report
+
+
+def _clean(mesh):
+    import trimesh
+
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    if len(f):
+        good_v = np.isfinite(v).all(axis=1)
+        f = f[good_v[f].all(axis=1)]
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    m = trimesh.Trimesh(v, f, process=True, validate=False)   # merges duplicate vertices
+    if len(m.faces):
+        scale = max(float(np.linalg.norm(m.extents)), 1e-12)
+        m.update_faces(m.area_faces > (1e-9 * scale) ** 2)       # zero-area faces
+        m.update_faces(m.unique_faces())
+        m.remove_unreferenced_vertices()
+    return m
+
+
+def _largest_components(mesh, fraction: float):
+    parts = mesh.split(only_watertight=False)
+    if len(parts) <= 1:
+        return mesh, 0
+    areas = np.array([p.area for p in parts])
+    keep = [p for p, a in zip(parts, areas) if a >= fraction * areas.max()]
+    import trimesh
+
+    return trimesh.util.concatenate(keep), len(parts) - len(keep)
+
+
+def _close_holes(mesh, max_hole_edges: int):
+    import pymeshlab
+    import trimesh
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int32)))
+    try:
+        ms.meshing_repair_non_manifold_edges()
+        ms.meshing_repair_non_manifold_vertices()
+        ms.meshing_close_holes(maxholesize=max_hole_edges, newfaceselected=False)
+    except Exception:   # pymeshlab raises on some inputs; the tetwild path below still applies
+        pass
+    out = ms.current_mesh()
+    return trimesh.Trimesh(out.vertex_matrix(), out.face_matrix(), process=True)
+
+
+def drop_slivers(mesh, fraction: float = KEEP_COMPONENT_AREA_FRACTION):
+    """Clean a mesh and keep only its significant components (trimesh in, trimesh out)."""
+    m = _clean(mesh)
+    if len(m.faces) == 0:
+        return m
+    return _largest_components(m, fraction)[0]
+
+
+def _tetwild_surface(mesh, edge_fraction: float):
+    """Watertight outer surface of fTetWild's tetrahedralisation (robust to holes and self-intersection)."""
+    import pytetwild
+    import trimesh
+
+    tv, tt = pytetwild.tetrahedralize(np.asarray(mesh.vertices, np.float64),
+                                      np.asarray(mesh.faces, np.int32),
+                                      edge_length_fac=edge_fraction, num_opt_iter=20,
+                                      num_threads=1, quiet=True)
+    if len(tt) == 0:
+        return None
+    tt = np.asarray(tt, np.int64)
+    # each tet face, oriented outward for a positively oriented tet; boundary = faces seen once
+    faces = np.concatenate([tt[:, [1, 2, 3]], tt[:, [0, 3, 2]], tt[:, [0, 1, 3]], tt[:, [0, 2, 1]]])
+    key = np.sort(faces, axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = faces[counts[inv.ravel()] == 1]
+    out = trimesh.Trimesh(np.asarray(tv, np.float64), boundary, process=True)
+    trimesh.repair.fix_normals(out)
+    return out
+
+
+def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
+                keep_fraction: float = KEEP_COMPONENT_AREA_FRACTION,
+                allow_tetwild: bool = True) -> RepairResult:
+    """Clean `mesh` (trimesh.Trimesh, metres) for export.
+
+    need_volume: the object is dynamic and needs mass, so it must be watertight with positive
+    volume; background (static) meshes pass need_volume=False and only get cleaned.
+    min_thickness: smallest extent (m) along the thinnest principal axis; thinner is "flat" and
+    cannot be simulated as a solid.
+    """
+    import trimesh
+
+    steps: list[str] = []
+    if mesh is None or len(getattr(mesh, "faces", [])) == 0:
+        return RepairResult(None, False, False, "empty mesh")
+    m = _clean(mesh)
+    if len(m.faces) < 4:
+        return RepairResult(None, False, False, "fewer than 4 valid faces after removing degenerate ones")
+    m, dropped = _largest_components(m, keep_fraction)
+    if dropped:
+        steps.append(f"removed {dropped} floating component(s)")
+    if not need_volume:
+        trimesh.repair.fix_winding(m)
+        return RepairResult(m, True, bool(m.is_watertight), "", steps)
+
+    thickness = _principal_thickness(m)
+    if thickness < min_thickness:
+        return RepairResult(None, False, False,
+                            f"flat: thickness {thickness * 1000:.2f} mm < {min_thickness * 1000:.1f} mm")
+    if not m.is_watertight:
+        m2 = _close_holes(m, max_hole_edges=max(30, int(0.05 * len(m.faces))))
+        if m2.is_watertight and len(m2.split(only_watertight=False)) == 1:
+            m = m2
+            steps.append("closed holes")
+        elif allow_tetwild:
+            m3 = _tetwild_surface(m, edge_fraction=0.03)
+            if m3 is not None and m3.is_watertight:
+                m3, _ = _largest_components(m3, keep_fraction)
+                m = m3
+                steps.append("rebuilt watertight surface (fTetWild)")
+    if not m.is_watertight:
+        return RepairResult(None, False, False, "could not be made watertight")
+    if not m.is_winding_consistent:
+        trimesh.repair.fix_winding(m)
+    if m.volume < 0:
+        m.invert()
+        steps.append("fixed inverted orientation")
+    trimesh.repair.fix_normals(m, multibody=True)
+    vol = float(m.volume)
+    bbox_vol = float(np.prod(m.extents))
+    if not (vol > 0) or vol < 1e-4 * bbox_vol or vol < min_thickness ** 3:
+        return RepairResult(None, False, False, f"zero volume ({vol:.3g} m^3)")
+    thickness = _principal_thickness(m)
+    if thickness < min_thickness:
+        return RepairResult(None, False, False,
+                            f"sliver: thickness {thickness * 1000:.2f} mm < {min_thickness * 1000:.1f} mm")
+    return RepairResult(m, True, True, "", steps)
+
+
+def _principal_thickness(mesh) -> float:
+    """Extent of the vertices along their thinnest principal direction (metres)."""
+    v = np.asarray(mesh.vertices, np.float64)
+    if len(v) < 3:
+        return 0.0
+    c = v - v.mean(axis=0)
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    proj = c @ vt[-1]
+    return float(proj.max() - proj.min())
