@@ -54,8 +54,10 @@ class Shape:
     radius: float = 0.0
 
 
-def segments_for(radius: float, tol: float = CHORD_TOL) -> int:
-    """Fewest polygon sides whose chordal deviation from a circle of `radius` stays within `tol`."""
+def segments_for(radius: float, tol: float | None = None) -> int:
+    """Fewest polygon sides whose chordal deviation from a circle of `radius` stays within `tol`
+    (default: the module's CHORD_TOL, read at call time so a benchmark can vary it)."""
+    tol = CHORD_TOL if tol is None else tol
     c = 1.0 - min(tol / max(radius, 1e-9), 1.0)
     n = math.ceil(math.pi / math.acos(c)) if c > -1 else 3
     return int(max(8, min(n, 256)) + (-max(8, min(n, 256))) % 4)  # multiple of 4: spheres need it
