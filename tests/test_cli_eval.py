@@ -227,3 +227,28 @@ def test_bad_inputs_give_one_line_errors(data, capsys, tmp_path):
     shutil.copytree(data, nogt, ignore=shutil.ignore_patterns("gt"))
     error(data / "gt" / "mesh.ply", nogt, match="gt/mesh.ply not found")
     error(write_coco(tmp_path / "coco2", gts), nogt, match="ground-truth label maps")
+
+
+def test_checkpoint_is_evaluated_through_its_mesh(data, capsys, tmp_path, monkeypatch):
+    import sys
+    import types
+
+    ckpt = tmp_path / "scene.ckpt"
+    ckpt.write_bytes(b"stand-in")
+    gt_mesh = trimesh.load(data / "gt" / "mesh.ply", force="mesh", process=False)
+    seen = []
+
+    class FakeScene:
+        def mesh(self):
+            return gt_mesh
+
+    fake = types.ModuleType("psimap.scene")
+    fake.load_scene = lambda path: seen.append(str(path)) or FakeScene()
+    monkeypatch.setitem(sys.modules, "psimap.scene", fake)
+    rc, out, err = run(capsys, ckpt, data, "--json", "--samples", "5000")
+    assert rc == 0, err
+    assert seen == [str(ckpt)] and json.loads(out)["geometry"]["f1"] == 1.0
+    # Without the training stage installed: one clear line.
+    monkeypatch.setitem(sys.modules, "psimap.scene", None)
+    rc, out, err = run(capsys, ckpt, data)
+    assert rc == 1 and "evaluating a checkpoint needs the training stage" in err

@@ -152,6 +152,8 @@ def test_degenerate_inputs():
     with pytest.raises(PsimapError, match="seen by any camera"):
         # 5 m below the quad, looking further down: sees nothing
         geometry_metrics(gt, gt, cameras=[camera(c2w=_translate(0, 0, -5) @ _flip())])
+    with pytest.raises(PsimapError, match="not finite"):
+        visible_faces(gt, [(np.full((3, 3), np.nan), np.eye(4), 8, 6)])
     with pytest.raises(PsimapError, match="threshold"):
         geometry_metrics(gt, gt, threshold=0.0)
     # Zero-area (degenerate) triangles mixed into a valid mesh change nothing.

@@ -211,6 +211,9 @@ def evaluate_panoptic(labels, data, *, progress=False, plot=None) -> dict:
     out = acc.result()
     out["missing_frames"] = missing
     out["unmatched_predictions"] = sorted(have - set(stems))
+    names = {c.id: c.name for c in seq.classes}
+    for c, v in out["per_class"].items():
+        v["name"] = names.get(c, "")
     if plot:
         plot_panoptic(out, plot, {c.id: c.name for c in seq.classes})
     return out
@@ -332,9 +335,10 @@ def format_table(result: dict) -> str:
         if p.get("unmatched_predictions"):
             lines.append(f"  {len(p['unmatched_predictions'])} predicted frames match no DATA frame (ignored)")
         if p.get("per_class"):
-            lines.append("  class   PQ      SQ      RQ      IoU     TP  FP  FN")
+            lines.append("  class              PQ      SQ      RQ      IoU     TP  FP  FN")
             for c, v in sorted(p["per_class"].items()):
-                lines.append(f"  {c:<6}{'*' if v['isthing'] else ' '} {v['pq']:.4f}  {v['sq']:.4f}  "
+                label = f"{c} {v.get('name', '')}"[:16]
+                lines.append(f"  {label:<16}{'*' if v['isthing'] else ' '} {v['pq']:.4f}  {v['sq']:.4f}  "
                              f"{v['rq']:.4f}  {f(v['iou'])}  {v['tp']:<3} {v['fp']:<3} {v['fn']:<3}")
             lines.append("  (* = thing class)")
     return "\n".join(lines)
