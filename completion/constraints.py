@@ -1,0 +1,98 @@
+"""Constraints every completion result must meet, and the re-check that measures them.
+
+1. Observed free space stays free: cells of the result that a camera saw empty are carved out
+   (voxel domain at the tolerance pitch; the cells holding observed points are kept).
+2. No intersection with neighbours or the background: exact boolean difference (manifold3d) with
+   every closed obstacle, and a trim by every background plane the observation lies in front of.
+3. Consistency with the observation: the share of observed points within tolerance of the result
+   surface is measured and reported.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def carve_free(mesh, points: np.ndarray, free_fn, pitch: float):
+    """Remove the known-free cells from closed `mesh`; returns a closed mesh (or None if empty)."""
+    from scipy import ndimage
+
+    from .meshops import grid_points, inside, occupancy_to_mesh
+
+    lo, hi = mesh.bounds
+    centres, shape, origin, pitch = grid_points(lo - pitch, hi + pitch, pitch)
+    occ = inside(centres, mesh)
+    cand = np.flatnonzero(occ)
+    occ[cand[free_fn(centres[cand])]] = False
+    occ = occ.reshape(shape)
+    idx = np.clip(np.floor((points - origin) / pitch + 0.5).astype(int), 0, np.array(shape) - 1)
+    occ[tuple(idx.T)] = True
+    occ = ndimage.binary_fill_holes(occ)
+    return occupancy_to_mesh(occ, origin, pitch)
+
+
+def blocking_planes(planes, points: np.ndarray, tolerance: float):
+    """Planes the whole observation lies in front of (within tolerance): the result must too."""
+    return [(n, d) for n, d in planes if (points @ n - d).min() >= -tolerance]
+
+
+def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray):
+    """mesh minus every closed obstacle mesh, trimmed to the front of every plane (n, d).
+
+    Keeps the pieces that hold observed points (all pieces when none does). Returns trimesh or None.
+    """
+    from scipy.spatial import cKDTree
+
+    from .meshops import from_manifold, to_manifold
+
+    man = to_manifold(mesh)
+    for n, d in planes:
+        man = man.trim_by_plane(tuple(float(x) for x in n), float(d))
+    for ob in obstacles:
+        if ob is None:
+            continue
+        lo, hi = ob.bounds
+        mlo, mhi = mesh.bounds
+        if (hi < mlo).any() or (lo > mhi).any():
+            continue
+        man = man - to_manifold(ob)
+    if man.is_empty():
+        return None
+    pieces = [from_manifold(p) for p in man.decompose()]
+    pieces = [p for p in pieces if len(p.faces) and p.volume > 0]
+    if not pieces:
+        return None
+    if len(pieces) > 1 and len(points):
+        import trimesh
+
+        keep = []
+        for p in pieces:
+            d, _ = cKDTree(p.vertices).query(points, k=1)
+            if (d <= 3 * np.sqrt(p.area / max(len(p.faces), 1)) + 1e-9).any() or p.volume >= max(q.volume for q in pieces):
+                keep.append(p)
+        pieces = keep
+        return trimesh.util.concatenate(pieces) if len(pieces) > 1 else pieces[0]
+    return pieces[0]
+
+
+def check(mesh, points: np.ndarray, tolerance: float, obstacles=(), planes=(), free_fn=None,
+          pitch: float | None = None) -> dict:
+    """Measured constraint state of a closed result mesh (all volumes in m³, distances in m)."""
+    from .coverage import fit_quality
+    from .freespace import free_fraction
+    from .meshops import volume_of_intersection
+
+    rms, inliers = fit_quality(mesh, points, tolerance)
+    col = [volume_of_intersection(mesh, ob) for ob in obstacles if ob is not None]
+    depth = 0.0
+    for n, d in planes:
+        depth = max(depth, float(-(mesh.vertices @ n - d).min()))
+    out = {"fit_rms": rms, "observed_on_surface": inliers,
+           "collision_volume": float(sum(col)), "plane_penetration": depth,
+           "watertight": bool(mesh.is_watertight)}
+    if free_fn is not None:
+        from .meshops import grid_points, inside
+
+        g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch or tolerance, max_cells=300_000)
+        g = g[inside(g, mesh)]
+        out["free_space_fraction"] = float(free_fn(g).mean()) if len(g) else 0.0
+    return out

@@ -1,0 +1,68 @@
+"""Observed free space from depth frames.
+
+A point x is known-free when some camera sees it in front of the observed surface: x projects inside
+the image, the depth there is valid, and x's depth along the optical axis is smaller than the
+observed depth by more than `tolerance`. Pixels with no depth (0 / NaN) say nothing. Everything is
+vectorised per camera: queries are projected into every depth map at once.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from psimap import PsimapError
+
+
+def check_cameras(cameras, depths) -> list[tuple[np.ndarray, np.ndarray, int, int, np.ndarray]]:
+    """Validate (K [3,3], c2w [4,4] OpenCV, W, H) and depth [H, W] pairs. Returns a list of tuples."""
+    cameras = list(cameras or [])
+    depths = list(depths or [])
+    if len(cameras) != len(depths):
+        raise PsimapError(f"completion context: {len(cameras)} cameras but {len(depths)} depth maps")
+    out = []
+    for i, (cam, d) in enumerate(zip(cameras, depths)):
+        K, c2w, w, h = cam
+        K = np.asarray(K, dtype=np.float64)
+        c2w = np.asarray(c2w, dtype=np.float64)
+        d = np.asarray(d, dtype=np.float64)
+        if K.shape != (3, 3) or c2w.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(c2w).all()):
+            raise PsimapError(f"completion context: camera {i} needs a finite K [3,3] and c2w [4,4]")
+        if d.shape != (int(h), int(w)):
+            raise PsimapError(f"completion context: depth {i} has shape {d.shape}, camera says {(h, w)}")
+        out.append((K, c2w, int(w), int(h), d))
+    return out
+
+
+def known_free(points: np.ndarray, cameras, tolerance: float) -> np.ndarray:
+    """points [Q, 3] world; cameras from `check_cameras`. Returns [Q] bool: seen empty by a camera."""
+    points = np.asarray(points, dtype=np.float64)
+    free = np.zeros(len(points), dtype=bool)
+    for K, c2w, w, h, depth in cameras:
+        R, t = c2w[:3, :3], c2w[:3, 3]
+        pc = (points - t) @ R               # world -> camera: R^T (x - t), row form
+        z = pc[:, 2]
+        ok = z > 1e-6
+        u = np.full(len(points), -1, dtype=np.int64)
+        v = np.full(len(points), -1, dtype=np.int64)
+        zs = np.where(ok, z, 1.0)
+        u[ok] = np.floor(K[0, 0] * pc[ok, 0] / zs[ok] + K[0, 2]).astype(np.int64)
+        v[ok] = np.floor(K[1, 1] * pc[ok, 1] / zs[ok] + K[1, 2]).astype(np.int64)
+        ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        d = np.zeros(len(points))
+        d[ok] = depth[v[ok], u[ok]]
+        # Pixel depth is z-depth (OpenCV); invalid returns are 0 or non-finite.
+        ok &= np.isfinite(d) & (d > 0)
+        free |= ok & (z < d - tolerance)
+    return free
+
+
+def free_fraction(mesh, cameras, tolerance: float, pitch: float) -> float:
+    """Share of the volume of closed `mesh` that lies in known free space (grid at `pitch`)."""
+    from .meshops import grid_points, inside
+
+    if not cameras or mesh is None:
+        return 0.0
+    g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch, max_cells=300_000)
+    g = g[inside(g, mesh)]
+    if len(g) == 0:
+        return 0.0
+    return float(known_free(g, cameras, tolerance).mean())

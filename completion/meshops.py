@@ -1,0 +1,157 @@
+"""Mesh and voxel helpers shared by the completion methods.
+
+Exact booleans go through manifold3d (watertight inputs), distances and inside tests through
+Open3D's RaycastingScene, and voxel occupancy becomes a closed surface through VTK's contouring
+(pyvista). Heavy imports stay inside the functions.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_trimesh(vertices: np.ndarray, faces: np.ndarray):
+    import trimesh
+
+    return trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
+                           process=True)
+
+
+def is_solid(mesh) -> bool:
+    """A closed, consistently wound mesh with positive volume (what a boolean can use)."""
+    return mesh is not None and len(mesh.faces) >= 4 and bool(mesh.is_watertight) \
+        and bool(mesh.is_winding_consistent) and float(mesh.volume) > 0
+
+
+def to_manifold(mesh):
+    """trimesh -> manifold3d.Manifold (empty Manifold when the mesh is not an oriented 2-manifold)."""
+    import manifold3d
+
+    v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
+    if mesh.volume < 0:     # inside-out input: flip so the boolean sees the right solid
+        f = np.ascontiguousarray(f[:, ::-1])
+    return manifold3d.Manifold(manifold3d.Mesh(vert_properties=v, tri_verts=f))
+
+
+def from_manifold(man):
+    m = man.to_mesh()
+    return as_trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts))
+
+
+def raycasting_scene(mesh):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    return scene
+
+
+def distance_to_surface(points: np.ndarray, mesh) -> np.ndarray:
+    """Unsigned distance of points [P, 3] to the surface of `mesh`. Returns [P] float64."""
+    import open3d as o3d
+
+    if len(points) == 0:
+        return np.zeros(0)
+    scene = raycasting_scene(mesh)
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy() \
+        .astype(np.float64)
+
+
+def inside(points: np.ndarray, mesh) -> np.ndarray:
+    """Which points [P, 3] lie inside the closed `mesh` (ray parity, 3 rays). Returns [P] bool."""
+    import open3d as o3d
+
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    scene = raycasting_scene(mesh)
+    occ = scene.compute_occupancy(o3d.core.Tensor(np.asarray(points, dtype=np.float32)), nsamples=3)
+    return occ.numpy().astype(bool)
+
+
+def grid_points(lo: np.ndarray, hi: np.ndarray, pitch: float, max_cells: int = 2_000_000):
+    """Cell centres of a regular grid covering [lo, hi] (pitch grown if it would exceed max_cells).
+
+    Returns (centres [X*Y*Z, 3], shape (X, Y, Z), origin [3] of cell (0,0,0) centre, pitch used).
+    """
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    ext = np.maximum(hi - lo, pitch)
+    pitch = max(pitch, float(np.cbrt(np.prod(ext) / max_cells)))
+    shape = tuple(int(n) for n in np.maximum(np.ceil(ext / pitch).astype(int), 1))
+    origin = lo + 0.5 * pitch
+    axes = [origin[i] + pitch * np.arange(shape[i]) for i in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return g, shape, origin, pitch
+
+
+def occupancy_to_mesh(occ: np.ndarray, origin: np.ndarray, pitch: float):
+    """Closed surface around the True cells of occ [X, Y, Z] (cell centres at origin + pitch * idx).
+
+    The grid is padded by one empty cell so the contour always closes; the 0.5 iso-level of the
+    lightly smoothed indicator puts the surface half a cell outside the occupied centres, i.e. on
+    the cell faces. Returns a trimesh or None when nothing is occupied.
+    """
+    import pyvista as pv
+    from scipy import ndimage
+
+    if not occ.any():
+        return None
+    field = np.pad(occ.astype(np.float32), 2)
+    field = ndimage.gaussian_filter(field, 0.6)
+    img = pv.ImageData(dimensions=field.shape, spacing=(pitch,) * 3,
+                       origin=tuple(np.asarray(origin, dtype=np.float64) - 2 * pitch))
+    img.point_data["occ"] = field.ravel(order="F")
+    surf = img.contour([0.5], scalars="occ").triangulate().clean()
+    if surf.n_cells == 0:
+        return None
+    faces = np.asarray(surf.faces).reshape(-1, 4)[:, 1:]
+    mesh = as_trimesh(np.asarray(surf.points), faces)
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def solidify(mesh, pitch: float):
+    """A closed solid for `mesh`: itself when watertight, else its surface band (surface samples
+    voxelised at `pitch`, cavities filled) — what a boolean with an open scan can use."""
+    from scipy import ndimage
+
+    if is_solid(mesh):
+        return mesh
+    pts = sample_surface(mesh, pitch)
+    if len(pts) == 0:
+        return None
+    lo, hi = pts.min(0) - pitch, pts.max(0) + pitch
+    shape = np.maximum(np.ceil((hi - lo) / pitch).astype(int), 1)
+    idx = np.clip(((pts - lo) / pitch).astype(int), 0, shape - 1)
+    occ = np.zeros(shape, dtype=bool)
+    occ[tuple(idx.T)] = True
+    occ = ndimage.binary_fill_holes(occ)
+    return occupancy_to_mesh(occ, lo + 0.5 * pitch, pitch)
+
+
+def sample_surface(mesh, spacing: float, max_points: int = 200_000, seed: int = 0) -> np.ndarray:
+    """Area-uniform surface samples about `spacing` apart (count from area / spacing²). [P, 3]."""
+    if mesh is None or len(mesh.faces) == 0:
+        return np.zeros((0, 3))
+    area = float(mesh.area)
+    if not area > 0:
+        return np.asarray(mesh.vertices, dtype=np.float64)
+    n = int(np.clip(2.0 * area / spacing ** 2, 200, max_points))
+    rng = np.random.default_rng(seed)
+    tri = mesh.triangles
+    w = mesh.area_faces / area
+    fid = rng.choice(len(tri), size=n, p=w)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    a, b, c = tri[fid, 0], tri[fid, 1], tri[fid, 2]
+    return (1 - s)[:, None] * a + (s * (1 - r2))[:, None] * b + (s * r2)[:, None] * c
+
+
+def volume_of_intersection(a, b) -> float:
+    """Volume (m³) of a ∩ b for two closed meshes (0 when either is not a solid)."""
+    if not (is_solid(a) and is_solid(b)):
+        return 0.0
+    inter = to_manifold(a) ^ to_manifold(b)
+    return float(inter.volume())

@@ -1,0 +1,126 @@
+"""Support planes and support-aware closing.
+
+Planes are (n [3] unit, d) with the plane {x : n·x = d} and n pointing to the object's side. They
+come from `context["support_planes"]` and from the background mesh (rays cast from the object's
+centre hit the floor / table / wall; the hit face gives the plane).
+
+Support-aware closing (the fallback that works for any shape): every observed point fills its
+vertical column down to the supporting surface (objects rest on something; the hidden underside
+lies between the seen top and the support), the 2D footprint's holes are filled, and space that a
+camera saw empty is carved away again. Without a support the closed shape is the convex hull of the
+observed points, carved the same way.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from psimap import PsimapError
+
+UP = np.array([0.0, 0.0, 1.0])     # world frame is Z-up (DESIGN.md)
+_SUPPORT_COS = np.cos(np.radians(30.0))
+
+
+def normalise_planes(raw, centre: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Validate planes given as (normal [3], offset) and orient them towards `centre` [3]."""
+    planes = []
+    for i, item in enumerate(raw or []):
+        try:
+            n, d = item
+            n = np.asarray(n, dtype=np.float64).reshape(3)
+            d = float(d)
+        except (TypeError, ValueError) as e:
+            raise PsimapError(f"completion context: support_planes[{i}] must be (normal [3], offset)") from e
+        norm = np.linalg.norm(n)
+        if not (np.isfinite(n).all() and np.isfinite(d) and norm > 1e-12):
+            raise PsimapError(f"completion context: support_planes[{i}] has a zero or non-finite normal")
+        n, d = n / norm, d / norm
+        if n @ centre - d < 0:
+            n, d = -n, -d
+        planes.append((n, d))
+    return planes
+
+
+def planes_from_background(background, points: np.ndarray, reach: float) -> list[tuple[np.ndarray, float]]:
+    """Planes of the background surfaces the object faces: rays from the centre of points [P, 3]
+    along ±x, ±y, -z hit the background within `reach`; each hit face gives a plane."""
+    import open3d as o3d
+
+    from .meshops import raycasting_scene
+
+    if background is None or len(background.faces) == 0:
+        return []
+    centre = 0.5 * (points.min(0) + points.max(0))
+    dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]], dtype=np.float64)
+    rays = np.concatenate([np.repeat(centre[None], len(dirs), 0), dirs], axis=1).astype(np.float32)
+    hit = raycasting_scene(background).cast_rays(o3d.core.Tensor(rays))
+    t = hit["t_hit"].numpy()
+    normals = hit["primitive_normals"].numpy().astype(np.float64)
+    planes = []
+    for k in range(len(dirs)):
+        if not (np.isfinite(t[k]) and t[k] <= reach):
+            continue
+        n = normals[k] / max(np.linalg.norm(normals[k]), 1e-12)
+        p = centre + t[k] * dirs[k]
+        d = float(n @ p)
+        if n @ centre - d < 0:
+            n, d = -n, -d
+        planes.append((n, d))
+    return planes
+
+
+def support_below(planes, points: np.ndarray, reach: float):
+    """The nearest plane under points [P, 3] that faces up, within `reach` of the lowest point."""
+    best, best_gap = None, np.inf
+    for n, d in planes:
+        if n @ UP < _SUPPORT_COS:
+            continue
+        gap = float((points @ n - d).min())
+        if -reach <= gap <= reach and gap < best_gap:
+            best, best_gap = (n, d), gap
+    return best
+
+
+def support_closing(points: np.ndarray, pitch: float, support, free_fn=None):
+    """Closed mesh from observed points [P, 3]: columns down to `support` (n, d) (or the convex hull
+    when None), minus cells that free_fn(centres [Q,3]) -> [Q] bool says were seen empty."""
+    from scipy import ndimage
+    from scipy.spatial import ConvexHull, Delaunay
+
+    from .meshops import grid_points, occupancy_to_mesh
+
+    lo, hi = points.min(0), points.max(0)
+    if support is not None:
+        n, d = support
+        # Lowest point on the support plane under the object: extend the box down to it.
+        z_plane = (d - lo[:2] @ n[:2]) / n[2] if abs(n[2]) > 1e-9 else lo[2]
+        lo = lo.copy()
+        lo[2] = min(lo[2], float(z_plane))
+    centres, shape, origin, pitch = grid_points(lo - pitch, hi + pitch, pitch)
+    idx = np.clip(np.floor((points - origin) / pitch + 0.5).astype(int), 0, np.array(shape) - 1)
+    if support is not None:
+        n, d = support
+        top = np.full(shape[:2], -1, dtype=int)
+        np.maximum.at(top, (idx[:, 0], idx[:, 1]), idx[:, 2])
+        seen = top >= 0
+        footprint = ndimage.binary_fill_holes(ndimage.binary_closing(seen, iterations=2) | seen)
+        # Unseen footprint cells take the height of the nearest seen column.
+        _, (ii, jj) = ndimage.distance_transform_edt(~seen, return_indices=True)
+        top = np.where(footprint, top[ii, jj], -1)
+        k = np.arange(shape[2])[None, None, :]
+        occ = k <= top[:, :, None]
+        occ &= (centres @ n - d >= -0.5 * pitch).reshape(shape)
+    else:
+        try:
+            hull = Delaunay(points[ConvexHull(points).vertices])
+        except Exception:       # coplanar / degenerate: nothing to close
+            return None
+        occ = (hull.find_simplex(centres) >= 0).reshape(shape)
+        occ[tuple(idx.T)] = True
+    if free_fn is not None:
+        flat = occ.reshape(-1)
+        cand = np.flatnonzero(flat)
+        flat[cand[free_fn(centres[cand])]] = False
+        occ = flat.reshape(shape)
+        occ[tuple(idx.T)] = True    # observed surface cells stay
+    occ = ndimage.binary_fill_holes(occ)
+    return occupancy_to_mesh(occ, origin, pitch)

@@ -1,0 +1,86 @@
+"""Rotational symmetry: detect a surface of revolution in the observed points and revolve it.
+
+Bottles, cans, bowls, cups and vases seen from one side show part of every horizontal circle of
+their outer surface. With a support plane the axis is the support normal (they stand on it);
+without one each principal axis of the points is tried. Per axial slice (2 tolerances thick) a
+circle fit gives a centre; the axis passes through the median centre. The outer radius profile is
+a high percentile of the radial distance per slice (inner walls seen through an opening lie inside
+it and are carved back by the free-space constraint). The fit is accepted when most points lie on
+the profile within tolerance, none lie far outside, and the points span a wide enough arc for the
+circle fits to mean something.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .primitives import _circle_fit, _frame, _sections, _support_level
+from .support import UP
+
+_MIN_ARC_DEG = 90.0     # narrower arcs do not pin the axis down
+
+
+def fit_revolution(points: np.ndarray, tolerance: float, support=None):
+    """Returns (closed trimesh, stats dict) or (None, stats dict with the reason)."""
+    import trimesh
+
+    axes = [UP] if support is not None else list(np.linalg.svd(points - points.mean(0))[2])
+    best = None
+    for axis in axes:
+        R = _frame(np.asarray(axis, dtype=np.float64))
+        local = points @ R
+        z = local[:, 2]
+        step = max(2 * tolerance, np.ptp(z) / 200)
+        n_slices = max(int(np.ceil(np.ptp(z) / step)), 1)
+        sl = np.minimum(((z - z.min()) / step).astype(int), n_slices - 1)
+        centres = []
+        for k in range(n_slices):
+            xy = local[sl == k, :2]
+            if len(xy) >= 8:
+                c = _circle_fit(xy)
+                if c is not None and c[1] < 5 * np.ptp(local[:, :2], axis=0).max():
+                    centres.append(c[0])
+        if len(centres) < 2:
+            continue
+        c2 = np.median(np.array(centres), axis=0)
+        rel = local[:, :2] - c2
+        radial = np.linalg.norm(rel, axis=1)
+        ang = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]))
+        arc = 10.0 * np.unique(np.floor(ang / 10.0)).size
+        profile = np.full(n_slices, np.nan)
+        for k in range(n_slices):
+            r_k = radial[sl == k]
+            if len(r_k):
+                profile[k] = np.percentile(r_k, 90)
+        ok = np.isfinite(profile)
+        profile = np.interp(np.arange(n_slices), np.flatnonzero(ok), profile[ok])
+        on = np.abs(radial - profile[sl]) <= tolerance
+        outside = radial > profile[sl] + 2 * tolerance
+        stats = {"arc_deg": float(arc), "on_profile": float(on.mean()), "outside": float(outside.mean())}
+        score = on.mean() - outside.mean()
+        if best is None or score > best[0]:
+            best = (score, R, c2, z.min(), step, profile, stats)
+    if best is None:
+        return None, {"reason": "too few points per slice for a circle fit"}
+    _, R, c2, z0, step, profile, stats = best
+    if stats["arc_deg"] < _MIN_ARC_DEG:
+        return None, {**stats, "reason": f"points span only {stats['arc_deg']:.0f} deg around the axis"}
+    if stats["on_profile"] < 0.6 or stats["outside"] > 0.05:
+        return None, {**stats, "reason": "points do not lie on one surface of revolution"}
+    zs = z0 + step * (np.arange(len(profile)) + 0.5)
+    bottom, top = z0, z0 + step * len(profile)
+    s = _support_level(support, R[:, 2], R @ np.array([c2[0], c2[1], 0.0]))
+    if s is not None and s < bottom:
+        bottom = s
+    r = np.concatenate([[profile[0]], profile, [profile[-1]]])
+    h = np.concatenate([[bottom], zs, [top]])
+    line = np.concatenate([[[0.0, bottom]], np.stack([r, h], 1), [[0.0, top]]])
+    mesh = trimesh.creation.revolve(line, sections=_sections(float(profile.max()), tolerance))
+    if not mesh.is_watertight:
+        return None, {**stats, "reason": "revolved profile is not closed"}
+    if mesh.volume < 0:
+        mesh.invert()
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = R @ np.array([c2[0], c2[1], 0.0])
+    mesh.apply_transform(T)
+    return mesh, stats
