@@ -102,37 +102,28 @@ class CameraVisibility:
 
     mesh: trimesh-like (or (vertices [V,3], faces [F,3])); cameras: iterable of
     (K [3,3], c2w [4,4] OpenCV camera-to-world, width, height). max_depth: ignore hits farther than
-    this z-depth (a depth sensor's range). Per-camera hit maps are cached while they fit in
-    `cache_bytes`, else re-cast when needed.
+    this z-depth (a depth sensor's range).
     """
 
-    def __init__(self, mesh, cameras, *, max_depth: float | None = None, progress: bool = False,
-                 cache_bytes: int = 256 << 20):
+    def __init__(self, mesh, cameras, *, max_depth: float | None = None, progress: bool = False):
         self.vertices, self.faces = _mesh_arrays(mesh, "visibility mesh")
-        self.cameras = [(np.asarray(K, np.float64), np.asarray(c2w, np.float64), int(w), int(h))
-                        for K, c2w, w, h in cameras]
+        self.cameras = []
+        for K, c2w, w, h in cameras:
+            camera_rays(K, c2w, 1, 1)  # validates K and c2w
+            self.cameras.append((np.asarray(K, np.float64), np.asarray(c2w, np.float64), int(w), int(h)))
         self.max_depth = max_depth
         self.progress = progress
         self._scene = _raycasting_scene(self.vertices, self.faces)
-        pixels = sum(w * h for _, _, w, h in self.cameras)
-        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] | None = (
-            {} if pixels * 8 <= cache_bytes else None)
 
-    def hits(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """Camera i: hit face [H, W] int64 (-1 = none or beyond max_depth) and z-depth [H, W]."""
-        if self._cache is not None and i in self._cache:
-            return self._cache[i]
-        K, c2w, w, h = self.cameras[i]
-        out = self._scene.cast_rays(camera_rays(K, c2w, w, h))
+    def _cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hit face [N] int64 (-1 = none or beyond max_depth) and hit z-depth [N] of rays [N, 6]."""
+        out = self._scene.cast_rays(rays)
         ids = out["primitive_ids"].numpy().astype(np.int64)
         ids[ids == 0xFFFFFFFF] = -1  # RaycastingScene.INVALID_ID
-        depth = out["t_hit"].numpy().astype(np.float32)
+        depth = out["t_hit"].numpy()
         if self.max_depth is not None:
             ids[depth > self.max_depth] = -1
-        res = (ids.reshape(h, w), depth.reshape(h, w))
-        if self._cache is not None:
-            self._cache[i] = res
-        return res
+        return ids, depth
 
     def _views(self, desc: str):
         from tqdm import tqdm
@@ -144,16 +135,17 @@ class CameraVisibility:
         """[F] bool: faces that are the first hit of at least one pixel ray."""
         seen = np.zeros(len(self.faces), dtype=bool)
         for i in self._views("visibility"):
-            ids = self.hits(i)[0]
+            ids = self._cast(camera_rays(*self.cameras[i]))[0]
             seen[ids[ids >= 0]] = True
         return seen
 
     def points_seen(self, points: np.ndarray, point_faces: np.ndarray) -> np.ndarray:
         """[N] bool: which surface points [N,3] (lying on faces point_faces [N]) some camera sees.
 
-        A face hit by a ray may be only partly seen (a wall behind a shelf), so a point is tested
-        on its own: it projects into a camera's image, and the ray of that pixel hits the point's
-        own face or a surface within two pixel footprints of the point's depth (not an occluder).
+        A face hit by a ray may be only partly seen (a wall behind a shelf), so each point is
+        tested on its own: it projects into a camera's image, and the ray through that pixel's
+        centre hits the point's own face, or a surface within two pixel footprints of the point's
+        depth (a neighbouring face, not an occluder). Only the rays of those pixels are cast.
         """
         seen = np.zeros(len(points), dtype=bool)
         for i in self._views("visible points"):
@@ -166,16 +158,18 @@ class CameraVisibility:
             z = pc[:, 2]
             front = z > 1e-9
             zs = np.where(front, z, 1.0)
-            u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 1] * pc[:, 1] / zs + K[0, 2]).astype(np.int64)
-            v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2]).astype(np.int64)
+            pix = np.stack([pc[:, 0] / zs, pc[:, 1] / zs, np.ones_like(zs)]).T @ K.T
+            u, v = np.floor(pix[:, 0]), np.floor(pix[:, 1])
             inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
             if not inside.any():
                 continue
-            ids, depth = self.hits(i)
-            idx, uu, vv = todo[inside], u[inside], v[inside]
-            hit_face, hit_z = ids[vv, uu], depth[vv, uu]
-            tol = 2.0 * z[inside] / min(K[0, 0], K[1, 1])
-            ok = (hit_face == point_faces[idx]) | ((hit_face >= 0) & (np.abs(hit_z - z[inside]) <= tol))
+            idx, z_in = todo[inside], z[inside]
+            centres = np.stack([u[inside] + 0.5, v[inside] + 0.5, np.ones(idx.size)])    # [3, n]
+            d_world = (c2w[:3, :3] @ np.linalg.solve(K, centres)).T
+            rays = np.concatenate([np.broadcast_to(c2w[:3, 3], d_world.shape), d_world], axis=1)
+            hit_face, hit_z = self._cast(rays.astype(np.float32))
+            tol = 2.0 * z_in / min(K[0, 0], K[1, 1])
+            ok = (hit_face == point_faces[idx]) | ((hit_face >= 0) & (np.abs(hit_z - z_in) <= tol))
             seen[idx[ok]] = True
         return seen
 
