@@ -5,6 +5,7 @@ Sources: back-projected depth frames (grey from the registered RGB image) and Li
 """
 from __future__ import annotations
 
+import sys
 from typing import Iterable
 
 import numpy as np
@@ -64,20 +65,89 @@ def backproject_frame(rgb: np.ndarray | None, depth: np.ndarray, K: np.ndarray, 
 
 
 def frames_to_points(frames: Iterable, *, max_depth: float | None = None, stride: int = 1,
-                     voxel: float | None = None) -> np.ndarray:
+                     voxel: float | None = None, progress: bool | None = None) -> np.ndarray:
     """Back-project every frame (objects with .rgb [H,W,3], .depth [H,W], .K, .c2w, optional .lidar
     [N,4]) and concatenate, LiDAR included. Frames with no valid depth contribute nothing.
-    voxel: if given, voxel-downsample the union. Returns [N, 4] float32 (x, y, z, grey)."""
-    parts = []
+
+    voxel: if given, the union is voxel-averaged; this is done frame by frame into a running
+    per-cell sum, so memory stays proportional to the occupied cells, not to pixels x frames (150
+    VGA frames are 46 M points). Returns [N, 4] float32 (x, y, z, grey).
+    """
+    if progress is None:
+        progress = sys.stderr.isatty()
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, desc="back-projecting", unit="frame", leave=False)
+    parts, acc = [], _CellAccumulator(voxel) if voxel is not None else None
     for f in frames:
-        parts.append(backproject_frame(f.rgb, f.depth, f.K, f.c2w, max_depth=max_depth, stride=stride))
+        chunk = [backproject_frame(f.rgb, f.depth, f.K, f.c2w, max_depth=max_depth, stride=stride)]
         lidar = getattr(f, "lidar", None)
         if lidar is not None and len(lidar):
-            parts.append(lidar_points(lidar))
-    pts = np.concatenate(parts, axis=0) if parts else np.zeros((0, 4), np.float32)
-    if voxel is not None and len(pts):
-        pts = voxel_downsample(pts, voxel)
-    return pts
+            chunk.append(lidar_points(lidar))
+        if acc is None:
+            parts.extend(chunk)
+        else:
+            for c in chunk:
+                acc.add(c)
+    if acc is not None:
+        return acc.result()
+    return np.concatenate(parts, axis=0) if parts else np.zeros((0, 4), np.float32)
+
+
+class _CellAccumulator:
+    """Running per-voxel sums of [N, 4] points on a fixed world grid (cell = floor(x / voxel))."""
+
+    def __init__(self, voxel: float):
+        if not (voxel > 0 and np.isfinite(voxel)):
+            raise PsimapError(f"voxel size must be a positive number, got {voxel}")
+        self.voxel = float(voxel)
+        self.cells = np.zeros((0, 3), np.int64)
+        self.sums = np.zeros((0, 4), np.float64)
+        self.counts = np.zeros(0, np.int64)
+        self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.pending_rows = 0
+
+    def add(self, pts: np.ndarray) -> None:
+        pts, _ = drop_nonfinite(np.asarray(pts))
+        if len(pts) == 0:
+            return
+        cells = np.floor(pts[:, :3].astype(np.float64) / self.voxel).astype(np.int64)
+        self.pending.append(_reduce_cells(cells, pts.astype(np.float64), np.ones(len(pts), np.int64)))
+        self.pending_rows += len(self.pending[-1][0])
+        if self.pending_rows > 4_000_000:
+            self._merge()
+
+    def _merge(self) -> None:
+        if not self.pending:
+            return
+        cells = np.concatenate([self.cells] + [p[0] for p in self.pending])
+        sums = np.concatenate([self.sums] + [p[1] for p in self.pending])
+        counts = np.concatenate([self.counts] + [p[2] for p in self.pending])
+        self.cells, self.sums, self.counts = _reduce_cells(cells, sums, counts)
+        self.pending, self.pending_rows = [], 0
+
+    def result(self) -> np.ndarray:
+        self._merge()
+        return (self.sums / np.maximum(self.counts, 1)[:, None]).astype(np.float32)
+
+
+def _reduce_cells(cells: np.ndarray, sums: np.ndarray, counts: np.ndarray):
+    """Merge rows sharing a cell [N, 3] int64: sums [N, D] and counts [N] are added. Sorted by cell."""
+    lo = cells.min(axis=0)
+    rel = cells - lo
+    dims = rel.max(axis=0) + 1
+    if np.prod(dims.astype(np.float64)) < 2 ** 62:
+        key = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+        order = np.argsort(key, kind="stable")
+        k = key[order]
+        starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    else:
+        order = np.lexsort((rel[:, 2], rel[:, 1], rel[:, 0]))
+        r = rel[order]
+        starts = np.flatnonzero(np.r_[True, (r[1:] != r[:-1]).any(axis=1)])
+    return (cells[order][starts], np.add.reduceat(sums[order], starts, axis=0),
+            np.add.reduceat(counts[order], starts))
 
 
 def lidar_points(lidar: np.ndarray) -> np.ndarray:
@@ -102,29 +172,17 @@ def lidar_points(lidar: np.ndarray) -> np.ndarray:
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Average every column of `points` [N, D] (x, y, z first) over occupied cubes of side `voxel`.
+    """Average every column of `points` [N, D] (x, y, z first) over occupied cubes of side `voxel`
+    on the world grid floor(x / voxel) (the same grid as `frames_to_points`, so results agree).
 
-    Quantise, sort by cell key, and average each run with np.add.reduceat: O(N log N), no Python
-    loop. Output rows are ordered by cell key, so the result is deterministic. Returns [M, D].
+    Sort by cell key and average each run with np.add.reduceat: O(N log N), no Python loop. Rows
+    come out in lexicographic cell order, so the result is deterministic. Returns [M, D].
     """
     points = np.asarray(points)
     if len(points) == 0:
         return points.copy()
     if not (voxel > 0 and np.isfinite(voxel)):
         raise PsimapError(f"voxel size must be a positive number, got {voxel}")
-    xyz = points[:, :3].astype(np.float64)
-    cell = np.floor((xyz - xyz.min(axis=0)) / voxel).astype(np.int64)
-    dims = cell.max(axis=0) + 1
-    if np.prod(dims.astype(np.float64)) < 2 ** 62:
-        key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-        order = np.argsort(key, kind="stable")
-        skey = key[order]
-        starts = np.flatnonzero(np.r_[True, skey[1:] != skey[:-1]])
-    else:  # astronomically large extent / voxel ratio: fall back to row-wise unique
-        _, inverse = np.unique(cell, axis=0, return_inverse=True)
-        order = np.argsort(inverse.ravel(), kind="stable")
-        sinv = inverse.ravel()[order]
-        starts = np.flatnonzero(np.r_[True, sinv[1:] != sinv[:-1]])
-    sums = np.add.reduceat(points[order].astype(np.float64), starts, axis=0)
-    counts = np.diff(np.r_[starts, len(points)])
+    cells = np.floor(points[:, :3].astype(np.float64) / voxel).astype(np.int64)
+    _, sums, counts = _reduce_cells(cells, points.astype(np.float64), np.ones(len(points), np.int64))
     return (sums / counts[:, None]).astype(points.dtype if points.dtype.kind == "f" else np.float32)

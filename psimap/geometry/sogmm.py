@@ -497,15 +497,17 @@ def sample_surfels(sogmm: SOGMM, n_total: int | None = None, *, density: float |
 
 
 class SOGMMIndex:
-    """Nearest-component lookup for surfel centres during training.
+    """Component lookup for surfel centres during training.
 
-    Why the nearest *mean*: components are small planar patches of bounded extent (max_extent),
-    so the closest mean is the patch a surfel sits on, up to patch borders where both patches
-    share (nearly) the same plane. A Mahalanobis assignment would evaluate every nearby density
-    for no benefit to the loss. The KD-tree is over the K fixed component means, not over the
+    Why the nearest *mean* (the default): components are small planar patches of bounded extent
+    (max_extent), so the closest mean is the patch a surfel sits on, except within about half a
+    patch of a crease, where it may be the neighbouring face's patch. `candidates > 1` fixes that
+    at k x the cost: among the k nearest means it takes the most likely component under the
+    spatial Gaussians (thin along the normal, so the patch whose plane holds the surfel wins), the
+    same rule as `SOGMM.assign`. The KD-tree is over the K fixed component means, not over the
     surfels: surfels moving or being cloned/pruned never needs a rebuild, and a rebuild (new
-    SOGMM) costs O(K log K). Queries run on CPU (scipy cKDTree) without gradients; the loss
-    terms that use the result are differentiable torch.
+    SOGMM) costs O(K log K). Queries run on CPU (scipy cKDTree) without gradients; the loss terms
+    that use the result are differentiable torch.
     """
 
     def __init__(self, sogmm: SOGMM):
@@ -516,17 +518,25 @@ class SOGMMIndex:
             raise PsimapError("SOGMMIndex needs a SOGMM with at least one component")
         self.sogmm = sogmm
         self._tree = cKDTree(np.asarray(sogmm.means[:, :3], dtype=np.float64))
+        self._inv, self._const = _gauss_terms(sogmm.covs[:, :3, :3], sogmm.weights)
         self.means = torch.as_tensor(sogmm.means[:, :3], dtype=torch.float32)      # [K, 3]
         self.normals = torch.as_tensor(sogmm.normals, dtype=torch.float32)         # [K, 3]
 
-    def nearest(self, mu):
-        """mu: torch.Tensor [M, 3] -> idx [M] long (on mu's device) of the nearest component mean."""
+    def nearest(self, mu, candidates: int = 1):
+        """mu: torch.Tensor [M, 3] -> idx [M] long (on mu's device): the nearest component mean, or
+        with candidates = k > 1 the most likely of the k nearest components."""
         import torch
 
         pts = mu.detach().to("cpu", torch.float64).numpy().reshape(-1, 3)
         if not np.isfinite(pts).all():
             raise PsimapError("SOGMMIndex.nearest: surfel positions contain NaN/inf")
-        _, idx = self._tree.query(pts, k=1)
+        k = min(int(candidates), self.sogmm.K)
+        if k <= 1 or len(pts) == 0:
+            _, idx = self._tree.query(pts, k=1)
+        else:
+            _, nn = self._tree.query(pts, k=k)
+            ll = _loglik(pts[:, None, :] - self.sogmm.means[nn, :3], self._inv, self._const, nn)
+            idx = nn[np.arange(len(pts)), np.argmax(ll, axis=1)]
         return torch.as_tensor(np.asarray(idx, dtype=np.int64).reshape(-1), device=mu.device)
 
 
@@ -540,8 +550,10 @@ def normal_alignment(n, n_ref):
     return 1.0 - (n * n_ref).sum(-1).abs()
 
 
-def geo_loss(means, normals, index: SOGMMIndex, lambda_n: float = 0.1, reduction: str = "mean"):
-    """L_geo = sum_i d(mu_i, M_k(i)) + lambda_n (1 - |n_i . n_k(i)|), k(i) = nearest component.
+def geo_loss(means, normals, index: SOGMMIndex, lambda_n: float = 0.1, reduction: str = "mean",
+             candidates: int = 1):
+    """L_geo = sum_i d(mu_i, M_k(i)) + lambda_n (1 - |n_i . n_k(i)|), k(i) = index.nearest(mu_i,
+    candidates) (nearest mean, or the most likely of the `candidates` nearest; see SOGMMIndex).
 
     means, normals: [N, 3] surfel centres and unit normals (torch). reduction "mean" (default,
     keeps the weight independent of the surfel count) or "sum" (the paper's form). Returns a scalar.
@@ -550,7 +562,7 @@ def geo_loss(means, normals, index: SOGMMIndex, lambda_n: float = 0.1, reduction
 
     if means.shape[0] == 0:
         return means.sum() * 0.0
-    idx = index.nearest(means)
+    idx = index.nearest(means, candidates)
     ref_m = index.means.to(means.device, means.dtype)[idx]
     ref_n = index.normals.to(means.device, means.dtype)[idx]
     per = point_to_plane(means, ref_m, ref_n) + lambda_n * normal_alignment(normals, ref_n)
