@@ -143,6 +143,8 @@ def test_empty_and_all_nan_inputs_raise():
         fit_sogmm(np.zeros((10, 5)))
     with pytest.raises(PsimapError, match="intensity"):
         fit_sogmm(np.zeros((10, 3)), intensity=np.zeros(3))
+    with pytest.raises(PsimapError, match="numeric"):
+        fit_sogmm([["a", "b", "c"]])
 
 
 def test_nan_points_dropped_with_count():
@@ -203,6 +205,9 @@ def test_deterministic():
     a, b = fit_sogmm(pts, seed=0), fit_sogmm(pts, seed=0)
     for f in ("means", "covs", "weights", "normals", "tangents", "eigvals", "counts"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    c = type(a).from_arrays(a.as_arrays())
+    for f in ("means", "covs", "normals", "counts"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(c, f))
     s1, s2, s3 = sample_surfels(a, 500, seed=1), sample_surfels(a, 500, seed=1), sample_surfels(a, 500, seed=2)
     for x, y in zip(s1, s2):
         np.testing.assert_array_equal(x, y)

@@ -29,6 +29,7 @@ _GREY_VAR_FLOOR = 0.01
 # Candidates per point for the final reassignment / `assign`.
 _CANDIDATES = 6
 _MAX_LEVELS = 64
+_ARRAY_FIELDS = ("means", "covs", "weights", "normals", "tangents", "eigvals", "counts")
 
 
 @dataclass
@@ -58,6 +59,18 @@ class SOGMM:
     def extents(self) -> np.ndarray:
         """[K, 2] side lengths along the two tangent axes: sqrt(12 lambda), exact for a uniform patch."""
         return np.sqrt(12.0 * np.maximum(self.eigvals[:, :2], 0.0))
+
+    def as_arrays(self) -> dict:
+        """Plain arrays (for saving next to a checkpoint); `SOGMM.from_arrays` inverts it."""
+        return {f: np.asarray(getattr(self, f)) for f in _ARRAY_FIELDS}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, fit_stats: dict | None = None) -> "SOGMM":
+        missing = [f for f in _ARRAY_FIELDS if f not in arrays]
+        if missing:
+            raise PsimapError(f"SOGMM arrays lack {', '.join(missing)}")
+        return cls(**{f: np.asarray(arrays[f], dtype=np.int64 if f == "counts" else np.float64)
+                      for f in _ARRAY_FIELDS}, fit_stats=dict(fit_stats or {}))
 
     def assign(self, points: np.ndarray, candidates: int = _CANDIDATES) -> np.ndarray:
         """Most likely component of each point [N, 3] (or [N, 4]) among its `candidates` nearest
@@ -242,17 +255,21 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
       applies while the component's mean residual is above a quarter of the budget: below that the
       thickness is sensor noise, and splitting a noisy patch only makes the ratio worse.
     residual: point-to-plane error budget (m): split while the mean |(x - mu_k) . n_k| exceeds it;
-      None = 0.5 voxel.
+      None = half the length unit (voxel, or the density-derived spacing). Set it above the
+      sensor's mean |noise|: below that, patches only stop splitting at min_points. Where data is
+      too sparse to split further (min_points), the reported residual can exceed the budget.
     min_points: never create a component with fewer points (tiny clusters stop splitting).
     em_iters: hard-EM steps per split pair. seed: kept for API symmetry; the fit has no randomness.
     Returns SOGMM. Raises PsimapError on empty / malformed input.
     """
     del seed  # the fit is deterministic by construction (no sampling)
     t_start = time.perf_counter()
-    pts = np.asarray(points)
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise PsimapError(f"SOGMM input is not a numeric point array: {e}") from None
     if pts.ndim != 2 or pts.shape[1] not in (3, 4):
         raise PsimapError(f"SOGMM input must be an [N, 3] or [N, 4] point array, got shape {pts.shape}")
-    pts = pts.astype(np.float64)
     if intensity is not None:
         inten = np.asarray(intensity, dtype=np.float64).reshape(-1)
         if len(inten) != len(pts):
