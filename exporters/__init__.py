@@ -4,3 +4,32 @@ One module per step (DESIGN.md data flow): instance meshes (TSDF) -> repair -> c
 decimation -> UV + texture -> collision geometry + mass -> MJCF / USD / GLB writers.
 Installed as `psimap.exporters` (never as a top-level `exporters`).
 """
+
+
+def cli_export(opts) -> int:
+    """`psimap export CKPT --format usd|mjcf|glb --out OUT [--completion auto|none] [--no-check]`."""
+    import sys
+
+    import psimap
+    from psimap.exporters.pipeline import export_scene
+
+    scene = psimap.load(opts.ckpt)
+    report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
+                          check=not opts.no_check, progress=sys.stderr.isatty())
+    n, skipped = len(report["objects"]), len(report["skipped"])
+    print(f"exported {n} object(s) to {opts.out} ({opts.format}); skipped {skipped}")
+    for o in report["objects"]:
+        c = o.get("collision", {})
+        print(f"  {o['name']:<24} {o['physics']['mass_kg']:8.3f} kg  {c.get('kind', '-'):<13} "
+              f"hulls {c.get('hull_count', 0)}  faces {o['faces_before']} -> {o['faces_after']}")
+    for s in report["skipped"]:
+        print(f"  skipped {s['name']}: {s['reason']}")
+    chk = report.get("check")
+    if chk is not None:
+        status = "passed" if chk["passed"] else "FAILED: " + "; ".join(chk["failures"])
+        print(f"simulation check {status} (min contact dist {chk['min_contact_dist'] * 1000:.2f} mm, "
+              f"max drift {chk['max_drift'] * 100:.2f} cm, "
+              f"{report['timings'].get('sim_seconds_per_wall_second', 0):.1f} sim s / wall s)")
+        if not chk["passed"]:
+            return 2
+    return 0

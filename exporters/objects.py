@@ -1,0 +1,225 @@
+"""Per-object assets: `SceneObject` and the asset steps 2-7 applied to one mesh.
+
+`build_object(mesh, label, instance_id, ...)`: repair -> completion hook -> decimation to an error
+budget -> UV + texture -> collision geometry -> mass properties. An object that cannot be made
+sound (flat, sliver, no volume, cannot be closed) comes back with `.skipped` set to the reason and
+never reaches a writer. `extract_objects(scene)` does this for every instance of a checkpoint.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class SceneObject:
+    """One exported object. mesh: trimesh.Trimesh in metres, world frame (textured when baked)."""
+
+    instance_id: int
+    label: str
+    mesh: object
+    semantic_id: int = 0
+    static: bool = False                    # background: no mass, no freejoint
+    collision: object | None = None         # psimap.exporters.collision.Collision
+    physics: object | None = None           # psimap.exporters.physics.Physics
+    uv: np.ndarray | None = None            # [V, 2] per mesh vertex
+    texture: np.ndarray | None = None       # uint8 [S, S, 3]
+    vertex_rgb: np.ndarray | None = None    # [V, 3] float fallback colours
+    texture_source: str = "none"            # "views" | "mesh" | "vertex" | "none"
+    texture_coverage: float = 0.0           # fraction of texels some view saw
+    faces_before: int = 0
+    faces_after: int = 0
+    decimation_error: float = 0.0           # metres (symmetric Hausdorff)
+    decimation_mean_error: float = 0.0
+    decimation_budget: float = 0.0
+    watertight: bool = False
+    completed: bool = False
+    completion_method: str = "none"
+    repair_steps: list = field(default_factory=list)
+    skipped: str = ""                       # reason the object is not exported ("" = exported)
+
+    @property
+    def name(self) -> str:
+        safe = re.sub(r"[^A-Za-z0-9]+", "_", self.label).strip("_") or "object"
+        if safe[0].isdigit():
+            safe = "c" + safe
+        return f"{safe}_{int(self.instance_id)}"
+
+    @property
+    def mass(self) -> float:
+        return 0.0 if self.physics is None else float(self.physics.mass)
+
+    @property
+    def friction(self) -> float:
+        return 0.7 if self.physics is None else float(self.physics.friction)
+
+
+def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, views=None,
+                 source_textured=None, completion: str = "auto", context: dict | None = None,
+                 decimation_budget: float | None = None, collision_tolerance: float | None = None,
+                 max_hulls: int = 8, densities: dict | None = None, texel: float = 0.001,
+                 seed: int = 0) -> SceneObject:
+    """Asset steps 2-7 for one dynamic object.
+
+    mesh: trimesh.Trimesh (metres, world frame). views: list of texture.View to bake from;
+    source_textured: a textured trimesh to transfer colour from (scans); else vertex colours of
+    `mesh` (if any). completion: "auto" calls psimap.completion, "none" skips it.
+    """
+    from psimap.exporters.collision import collision_geometry
+    from psimap.exporters.decimate import decimate_to_budget
+    from psimap.exporters.physics import mass_properties
+    from psimap.exporters.repair import repair_mesh
+
+    obj = SceneObject(int(instance_id), str(label), mesh, semantic_id=int(semantic_id))
+    obj.faces_before = int(len(getattr(mesh, "faces", [])))
+    vertex_rgb = _vertex_rgb(mesh)
+    rep = repair_mesh(mesh, need_volume=True)
+    obj.repair_steps = rep.steps
+    if not rep.ok:
+        obj.skipped = f"repair: {rep.reason}"
+        return obj
+    m = rep.mesh
+    if completion == "auto":
+        from psimap.completion import complete
+
+        res = complete(m, dict(context or {}, label=label, instance_id=int(instance_id)))
+        obj.completed, obj.completion_method = bool(res.completed), res.method
+        if res.completed:
+            rep2 = repair_mesh(res.mesh, need_volume=True)
+            if rep2.ok:
+                m = rep2.mesh
+            else:
+                obj.completed = False
+                obj.repair_steps.append(f"completion discarded: {rep2.reason}")
+    dec = decimate_to_budget(m, decimation_budget, seed=seed)
+    m = dec.mesh
+    obj.faces_after = int(len(m.faces))
+    obj.decimation_error, obj.decimation_mean_error = dec.hausdorff, dec.mean_error
+    obj.decimation_budget = dec.budget
+    obj.watertight = bool(m.is_watertight)
+    if not obj.watertight:
+        obj.skipped = "decimation: result not watertight"
+        return obj
+    try:
+        obj.physics = mass_properties(m, label, densities=densities)
+    except Exception as e:  # PsimapError: no volume
+        obj.skipped = f"physics: {e}"
+        return obj
+    obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed)
+    _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
+    return obj
+
+
+def build_background(mesh, *, views=None, label: str = "background", decimation_budget: float | None = None,
+                     texel: float = 0.01, seed: int = 0) -> SceneObject:
+    """Static background (floor, walls, ...): cleaned and decimated, textured, no mass."""
+    from psimap.exporters.decimate import decimate_to_budget
+    from psimap.exporters.repair import repair_mesh
+
+    obj = SceneObject(0, label, mesh, static=True)
+    obj.faces_before = int(len(getattr(mesh, "faces", [])))
+    vertex_rgb = _vertex_rgb(mesh)
+    rep = repair_mesh(mesh, need_volume=False)
+    if not rep.ok:
+        obj.skipped = f"repair: {rep.reason}"
+        return obj
+    budget = decimation_budget if decimation_budget is not None else 0.01
+    dec = decimate_to_budget(rep.mesh, budget, seed=seed)
+    m = dec.mesh
+    obj.faces_after, obj.decimation_error = int(len(m.faces)), dec.hausdorff
+    obj.decimation_mean_error, obj.decimation_budget = dec.mean_error, dec.budget
+    obj.watertight = bool(m.is_watertight)
+    _texture(obj, m, views, None, vertex_rgb, mesh, texel)
+    return obj
+
+
+def _vertex_rgb(mesh):
+    try:
+        vis = mesh.visual
+        if vis.kind in ("vertex", "face"):
+            return np.asarray(vis.to_color().vertex_colors if vis.kind != "vertex" else vis.vertex_colors,
+                              np.float64)[:, :3] / 255.0
+    except Exception:
+        pass
+    return None
+
+
+def _texture(obj: SceneObject, m, views, source_textured, vertex_rgb, original, texel: float) -> None:
+    """UV-unwrap `m` and bake a texture into obj (mesh replaced by the seam-split, UV'd mesh)."""
+    import trimesh
+
+    from psimap.exporters import texture as T
+
+    fallback = None
+    if vertex_rgb is not None and len(vertex_rgb) == len(original.vertices):
+        # colours of the decimated vertices from the nearest original vertex
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(np.asarray(original.vertices)).query(np.asarray(m.vertices))
+        fallback = vertex_rgb[idx]
+    if views:
+        fallback = T.vertex_colors_from_views(np.asarray(m.vertices, np.float64), views) if fallback is None \
+            else fallback
+    try:
+        v, f, uv, vmap = T.unwrap(m)
+    except Exception:
+        obj.mesh = m
+        obj.vertex_rgb = fallback
+        obj.texture_source = "vertex" if fallback is not None else "none"
+        return
+    size = T.texture_size(m, texel)
+    fb = None if fallback is None else fallback[vmap]
+    if views:
+        img, cov = T.bake_from_views(v, f, uv, views, size, fallback_vertex_rgb=fb)
+        obj.texture, obj.texture_source, obj.texture_coverage = img, "views", cov
+    elif source_textured is not None:
+        obj.texture, obj.texture_source, obj.texture_coverage = T.bake_from_mesh(v, f, uv, source_textured, size), \
+            "mesh", 1.0
+    elif fb is not None:
+        rows, cols, fid, bary = T.rasterize_uv(f, uv, size)
+        img = np.zeros((size, size, 3))
+        filled = np.zeros((size, size), bool)
+        img[rows, cols] = np.einsum("pk,pkd->pd", bary, fb[f[fid]])
+        filled[rows, cols] = True
+        obj.texture, obj.texture_source = T._to_uint8(T._dilate(img, filled)), "vertex"
+    obj.mesh = trimesh.Trimesh(v, f, process=False)
+    obj.uv = uv if obj.texture is not None else None
+    obj.vertex_rgb = fb
+
+
+def extract_objects(scene, *, completion: str = "auto", include_skipped: bool = False,
+                    progress: bool = False, **kw) -> list[SceneObject]:
+    """One SceneObject per thing instance of a trained scene (psimap.scene.Scene).
+
+    Meshes come from TSDF fusion of the rendered depth masked by the rendered instance id (step 1),
+    then go through the asset steps. Skipped objects (with .skipped) only when include_skipped.
+    """
+    objs, _ = extract_scene(scene, completion=completion, progress=progress, **kw)
+    return [o for o in objs if include_skipped or not o.skipped]
+
+
+def extract_scene(scene, *, completion: str = "auto", progress: bool = False, seed: int = 0,
+                  **kw) -> tuple[list[SceneObject], SceneObject | None]:
+    """(objects incl. skipped ones, background or None) of a trained scene."""
+    from tqdm import tqdm
+
+    from psimap.exporters.instance_meshes import instance_meshes
+
+    inst = instance_meshes(scene, progress=progress)
+    objs = []
+    for item in tqdm(inst.things, desc="objects", disable=not progress, leave=False):
+        if item.mesh is None or len(item.mesh.faces) == 0:
+            objs.append(SceneObject(item.instance_id, item.label, item.mesh, semantic_id=item.semantic_id,
+                                    skipped="no surface fused for this instance"))
+            continue
+        objs.append(build_object(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,
+                                 views=inst.views_for(item.instance_id), completion=completion,
+                                 context={"background": inst.background}, seed=seed, **kw))
+    bg = None
+    if inst.background is not None and len(inst.background.faces):
+        bg = build_background(inst.background, views=inst.views, seed=seed)
+        if bg.skipped:
+            bg = None
+    return objs, bg

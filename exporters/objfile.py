@@ -1,0 +1,53 @@
+"""Textured OBJ (+ MTL + PNG) and plain STL/OBJ writing shared by the writers (trimesh's exporter,
+with deterministic names and a white diffuse factor so the texture shows at its true colour)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def write_textured_obj(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None,
+                       image: np.ndarray | None, path: Path, name: str,
+                       vertex_rgb: np.ndarray | None = None) -> list[str]:
+    """Write `path` (.obj) with `name`.mtl and `name`.png beside it. Returns the file names written.
+
+    vertices [V, 3] (frame chosen by the caller), faces [F, 3], uv [V, 2] or None, image uint8
+    [S, S, 3] or None; without a texture, vertex colours (float [V, 3]) are written when given.
+    """
+    import trimesh
+    from PIL import Image
+
+    path = Path(path)
+    if uv is not None and image is not None:
+        mat = trimesh.visual.material.SimpleMaterial(image=Image.fromarray(image), name=name,
+                                                     diffuse=[255, 255, 255, 255],
+                                                     ambient=[255, 255, 255, 255],
+                                                     specular=[0, 0, 0, 255], glossiness=1.0)
+        mesh = trimesh.Trimesh(vertices, faces, visual=trimesh.visual.TextureVisuals(uv=uv, material=mat),
+                               process=False)
+    else:
+        colors = None if vertex_rgb is None else (np.clip(vertex_rgb, 0, 1) * 255).astype(np.uint8)
+        mesh = trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)
+    text, files = trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_texture=True,
+                                                  return_texture=True, mtl_name=f"{name}.mtl",
+                                                  header=None, digits=7)
+    path.write_text(text)
+    written = [path.name]
+    for fname, data in sorted(files.items()):
+        (path.parent / fname).write_bytes(data)
+        written.append(fname)
+    return written
+
+
+def write_plain(vertices: np.ndarray, faces: np.ndarray, path: Path) -> None:
+    """Geometry only (.stl binary or .obj), for collision parts."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    path = Path(path)
+    if path.suffix == ".obj":
+        path.write_text(trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_color=False,
+                                                        include_texture=False, header=None, digits=7))
+    else:
+        path.write_bytes(trimesh.exchange.stl.export_stl(mesh))

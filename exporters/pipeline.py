@@ -1,0 +1,143 @@
+"""`export_scene`: objects (or a trained scene) -> an export folder, written atomically.
+
+OUT/
+  scene.xml + assets/    (format "mjcf")     scene.usda + assets/ (format "usd")    scene.glb ("glb")
+  meshes/<name>.obj (+ .mtl, .png)  visual mesh of every object, world frame
+  collision/<name>_<k>.obj          convex collision parts (world frame; primitives as meshes)
+  report.json                       per object + the simulation check (deterministic)
+  timings.json                      wall-clock timings (the only file that differs between runs)
+The folder is built in a temporary directory and renamed at the end: never half written.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from psimap import PsimapError
+
+FORMATS = ("mjcf", "usd", "glb")
+
+
+def floor_height(objects, background=None) -> float:
+    """Floor z: the lowest dynamic object's bottom, or the background's dominant upward plane."""
+    lows = [float(o.mesh.bounds[0, 2]) for o in objects]
+    z = min(lows) if lows else 0.0
+    if background is not None and len(background.mesh.faces):
+        m = background.mesh
+        up = np.asarray(m.face_normals)[:, 2] > 0.9
+        if up.any():
+            zc = np.asarray(m.triangles_center)[up, 2]
+            area = np.asarray(m.area_faces)[up]
+            hist, edges = np.histogram(zc, bins=max(8, int((zc.max() - zc.min()) / 0.01) + 1), weights=area)
+            zf = float(0.5 * (edges[hist.argmax()] + edges[hist.argmax() + 1]))
+            if not lows or zf <= z + 0.01:
+                z = min(z, zf) if lows else zf
+    return z
+
+
+def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] = "mjcf", *,
+                 completion: str = "auto", check: bool = True, background=None,
+                 progress: bool = False, seed: int = 0, **kw) -> dict:
+    """Export objects to `out_dir`; returns the report dict (also written as report.json).
+
+    scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
+    SceneObject (background: optional static SceneObject). format: "mjcf" | "usd" | "glb" | "all"
+    or a list. check: run the MuJoCo simulation check (on the MJCF, always written for it); a load
+    failure raises PsimapError, a failed settle is reported (report["check"]["passed"]).
+    """
+    from psimap.exporters.objects import SceneObject, extract_scene
+    from psimap.io_utils import atomic_dir
+
+    fmts = list(FORMATS) if format == "all" else ([format] if isinstance(format, str) else list(format))
+    bad = [f for f in fmts if f not in FORMATS]
+    if bad:
+        raise PsimapError(f"unknown export format {bad[0]!r} (choose from {', '.join(FORMATS)}, all)")
+    if completion not in ("auto", "none"):
+        raise PsimapError(f"completion must be 'auto' or 'none', got {completion!r}")
+    t0 = time.perf_counter()
+    if isinstance(scene_or_objects, (list, tuple)):
+        all_objs = list(scene_or_objects)
+        if any(not isinstance(o, SceneObject) for o in all_objs):
+            raise PsimapError("export_scene: expected a Scene or a list of SceneObject")
+    else:
+        all_objs, background = extract_scene(scene_or_objects, completion=completion, progress=progress,
+                                             seed=seed, **kw)
+    t_objects = time.perf_counter() - t0
+    objs = [o for o in all_objs if not o.skipped and not o.static]
+    names = [o.name for o in objs]
+    if len(set(names)) != len(names):
+        raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
+    floor_z = floor_height(objs, background)
+    timings = {"objects_s": t_objects}
+    report = {"format": sorted(fmts), "floor_z": floor_z, "objects": [], "skipped": [],
+              "background": None}
+    with atomic_dir(out_dir) as tmp:
+        files = _write_meshes(objs, background, tmp)
+        for o in all_objs:
+            if o.skipped:
+                report["skipped"].append({"name": o.name, "instance_id": int(o.instance_id),
+                                          "class": o.label, "reason": o.skipped})
+        from psimap.exporters.report import object_entry, write_report
+
+        report["objects"] = [object_entry(o, files[o.name]) for o in objs]
+        if background is not None:
+            report["background"] = object_entry(background, files.get(background.name, {}))
+        t = time.perf_counter()
+        if "mjcf" in fmts or check:
+            from psimap.exporters.mjcf import write_mjcf
+
+            mj_dir = tmp if "mjcf" in fmts else tmp / ".check"
+            xml = write_mjcf(objs, mj_dir, background=background, floor_z=floor_z)
+            if check:
+                from psimap.sim.check import check_mjcf
+
+                res = check_mjcf(xml)
+                timings["sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
+                report["check"] = res
+            if "mjcf" not in fmts:
+                import shutil
+
+                shutil.rmtree(mj_dir)
+        if "usd" in fmts:
+            from psimap.exporters.usd import validate_usd, write_usd
+
+            usd_path = write_usd(objs, tmp, background=background, floor_z=floor_z,
+                                 nudges=report.get("check", {}).get("nudges", {}))
+            report["usd_validation"] = validate_usd(usd_path)
+            if report["usd_validation"]["errors"]:
+                raise PsimapError(f"USD validation failed: {report['usd_validation']['errors'][0]}")
+        if "glb" in fmts:
+            from psimap.exporters.glb import write_glb
+
+            write_glb(objs, tmp / "scene.glb", background=background,
+                      nudges=report.get("check", {}).get("nudges", {}))
+        timings["writers_s"] = time.perf_counter() - t
+        timings["total_s"] = time.perf_counter() - t0
+        write_report(tmp / "report.json", report)
+        (tmp / "timings.json").write_text(json.dumps({k: round(v, 4) for k, v in timings.items()},
+                                                     indent=2, sort_keys=True) + "\n")
+    report["timings"] = timings
+    return report
+
+
+def _write_meshes(objs, background, root: Path) -> dict:
+    """meshes/ (textured OBJ, world frame) and collision/ (convex parts, world frame)."""
+    from psimap.exporters.objfile import write_plain, write_textured_obj
+
+    (root / "meshes").mkdir(parents=True, exist_ok=True)
+    (root / "collision").mkdir(parents=True, exist_ok=True)
+    files = {}
+    for o in objs + ([background] if background is not None else []):
+        write_textured_obj(np.asarray(o.mesh.vertices, np.float64), o.mesh.faces, o.uv, o.texture,
+                           root / "meshes" / f"{o.name}.obj", o.name, vertex_rgb=o.vertex_rgb)
+        entry = {"mesh": f"meshes/{o.name}.obj", "collision": []}
+        if o.collision is not None:
+            for k, part in enumerate(o.collision.parts):
+                rel = f"collision/{o.name}_{k}.obj"
+                write_plain(np.asarray(part.vertices, np.float64), part.faces, root / rel)
+                entry["collision"].append(rel)
+        files[o.name] = entry
+    return files

@@ -1,0 +1,224 @@
+"""OpenUSD writer (`scene.usda` + `assets/`) and its validation with `pxr.UsdValidation`.
+
+Stage: Z-up, metersPerUnit 1, kilogramsPerUnit 1, defaultPrim /World, a PhysicsScene. Per object an
+Xform (RigidBodyAPI, MassAPI with mass / centre of mass / principal inertia) holding a visual Mesh
+(UsdPreviewSurface with the baked texture through the `st` primvar, MaterialBindingAPI) and its
+colliders (CollisionAPI; convex parts with MeshCollisionAPI approximation convexHull, primitives as
+UsdGeom Sphere / Cube / Cylinder). The class goes on the object through UsdSemantics.LabelsAPI
+("class" taxonomy, what Isaac Sim's labelling reads) and the instance id as `psimap:instanceId`.
+The background is static (no RigidBodyAPI) with a triangle-mesh collider (approximation none).
+"""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+
+def _vt():
+    from pxr import Gf, Vt
+
+    return Gf, Vt
+
+
+def _mesh_prim(stage, path: str, vertices: np.ndarray, faces: np.ndarray):
+    from pxr import UsdGeom, Vt
+
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(vertices, np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces, np.int32).ravel()))
+    mesh.CreateSubdivisionSchemeAttr("none")
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([lo, hi]).astype(np.float32)))
+    return mesh
+
+
+def _material(stage, path: str, texture_file: str | None, rgb):
+    from pxr import Sdf, UsdShade
+
+    mat = UsdShade.Material.Define(stage, path)
+    shader = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.9)
+    shader.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
+    mat.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+    if texture_file is None:
+        from pxr import Gf
+
+        shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*[float(c) for c in rgb]))
+        return mat
+    reader = UsdShade.Shader.Define(stage, f"{path}/stReader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    st_input = mat.CreateInput("frame:stPrimvarName", Sdf.ValueTypeNames.String)
+    st_input.Set("st")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).ConnectToSource(st_input)
+    tex = UsdShade.Shader.Define(stage, f"{path}/diffuseTexture")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture_file)
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("sRGB")
+    tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
+    tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    return mat
+
+
+def _visual(stage, parent: str, obj, origin: np.ndarray, assets: Path, rel_assets: str):
+    from PIL import Image
+    from pxr import Sdf, UsdGeom, UsdShade, Vt
+
+    v = np.asarray(obj.mesh.vertices, np.float64) - origin
+    mesh = _mesh_prim(stage, f"{parent}/visual", v, np.asarray(obj.mesh.faces))
+    tex_file = None
+    if obj.uv is not None and obj.texture is not None:
+        st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                     UsdGeom.Tokens.vertex)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(obj.uv, np.float32)))
+        Image.fromarray(obj.texture).save(assets / f"{obj.name}.png", optimize=False)
+        tex_file = f"./{rel_assets}/{obj.name}.png"
+    rgb = np.asarray(obj.vertex_rgb).mean(axis=0) if obj.vertex_rgb is not None else (0.6, 0.6, 0.6)
+    mat = _material(stage, f"{parent}/Looks/{obj.name}_material", tex_file, rgb)
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    return mesh
+
+
+def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float = 0.0,
+              nudges: dict | None = None) -> Path:
+    """Write `out_dir/scene.usda` (+ textures in `out_dir/assets/`); returns its path.
+
+    nudges: {object name: dz} lifts applied by the MJCF penetration check, so every format agrees.
+    """
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdSemantics, Vt
+
+    out = Path(out_dir)
+    assets = out / "assets"
+    assets.mkdir(parents=True, exist_ok=True)
+    path = out / "scene.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    scene = UsdPhysics.Scene.Define(stage, "/World/PhysicsScene")
+    scene.CreateGravityDirectionAttr(Gf.Vec3f(0, 0, -1))
+    scene.CreateGravityMagnitudeAttr(9.81)
+    nudges = nudges or {}
+
+    # floor: a static thin box collider (a plane has no extent validators accept everywhere)
+    floor = UsdGeom.Cube.Define(stage, "/World/floor")
+    floor.CreateSizeAttr(1.0)
+    floor.AddTranslateOp().Set(Gf.Vec3d(0, 0, floor_z - 0.05))
+    floor.AddScaleOp().Set(Gf.Vec3f(100.0, 100.0, 0.1))
+    UsdPhysics.CollisionAPI.Apply(floor.GetPrim())
+
+    def label(prim, obj):
+        sem = UsdSemantics.LabelsAPI.Apply(prim, "class")
+        sem.CreateLabelsAttr(Vt.TokenArray([obj.label]))
+        prim.CreateAttribute("psimap:instanceId", Sdf.ValueTypeNames.Int).Set(int(obj.instance_id))
+        prim.CreateAttribute("psimap:semanticId", Sdf.ValueTypeNames.Int).Set(int(obj.semantic_id))
+
+    if background is not None:
+        bg = UsdGeom.Xform.Define(stage, f"/World/{background.name}")
+        _visual(stage, bg.GetPath().pathString, background, np.zeros(3), assets, "assets")
+        col = _mesh_prim(stage, f"{bg.GetPath()}/collision", np.asarray(background.mesh.vertices, np.float64),
+                         np.asarray(background.mesh.faces))
+        UsdGeom.Imageable(col).CreatePurposeAttr(UsdGeom.Tokens.guide)
+        UsdPhysics.CollisionAPI.Apply(col.GetPrim())
+        UsdPhysics.MeshCollisionAPI.Apply(col.GetPrim()).CreateApproximationAttr(UsdPhysics.Tokens.none)
+        label(bg.GetPrim(), background)
+
+    for o in objects:
+        ph = o.physics
+        com = np.asarray(ph.com, np.float64) + np.array([0, 0, nudges.get(o.name, 0.0)])
+        x = UsdGeom.Xform.Define(stage, f"/World/{o.name}")
+        x.AddTranslateOp().Set(Gf.Vec3d(*com))
+        prim = x.GetPrim()
+        UsdPhysics.RigidBodyAPI.Apply(prim)
+        mass = UsdPhysics.MassAPI.Apply(prim)
+        mass.CreateMassAttr(float(ph.mass))
+        mass.CreateCenterOfMassAttr(Gf.Vec3f(0, 0, 0))
+        mass.CreateDiagonalInertiaAttr(Gf.Vec3f(*[float(v) for v in ph.principal_inertia]))
+        q = _quat(ph.principal_axes)
+        mass.CreatePrincipalAxesAttr(Gf.Quatf(float(q[0]), float(q[1]), float(q[2]), float(q[3])))
+        label(prim, o)
+        base = f"/World/{o.name}"
+        _visual(stage, base, o, np.asarray(ph.com, np.float64), assets, "assets")
+        c = o.collision
+        if c.is_primitive:
+            T = np.asarray(c.transform, np.float64)
+            local = T[:3, 3] - np.asarray(ph.com, np.float64)
+            qc = _quat(T[:3, :3])
+            if c.kind == "sphere":
+                g = UsdGeom.Sphere.Define(stage, f"{base}/collision_0")
+                g.CreateRadiusAttr(float(c.size[0]))
+            elif c.kind == "box":
+                g = UsdGeom.Cube.Define(stage, f"{base}/collision_0")
+                g.CreateSizeAttr(2.0)
+            else:
+                g = UsdGeom.Cylinder.Define(stage, f"{base}/collision_0")
+                g.CreateRadiusAttr(float(c.size[0]))
+                g.CreateHeightAttr(float(2 * c.size[1]))
+                g.CreateAxisAttr(UsdGeom.Tokens.z)
+            g.AddTranslateOp().Set(Gf.Vec3d(*local))
+            g.AddOrientOp().Set(Gf.Quatf(float(qc[0]), float(qc[1]), float(qc[2]), float(qc[3])))
+            if c.kind == "box":
+                g.AddScaleOp().Set(Gf.Vec3f(*[float(s) for s in c.size]))
+            UsdGeom.Imageable(g).CreatePurposeAttr(UsdGeom.Tokens.guide)
+            UsdPhysics.CollisionAPI.Apply(g.GetPrim())
+        else:
+            for k, part in enumerate(c.parts):
+                pm = _mesh_prim(stage, f"{base}/collision_{k}",
+                                np.asarray(part.vertices, np.float64) - np.asarray(ph.com, np.float64),
+                                np.asarray(part.faces))
+                UsdGeom.Imageable(pm).CreatePurposeAttr(UsdGeom.Tokens.guide)
+                UsdPhysics.CollisionAPI.Apply(pm.GetPrim())
+                UsdPhysics.MeshCollisionAPI.Apply(pm.GetPrim()).CreateApproximationAttr(
+                    UsdPhysics.Tokens.convexHull)
+        from pxr import UsdShade
+
+        pmat = UsdShade.Material.Define(stage, f"{base}/Looks/PhysicsMaterial")
+        mat = UsdPhysics.MaterialAPI.Apply(pmat.GetPrim())
+        mat.CreateStaticFrictionAttr(float(ph.friction))
+        mat.CreateDynamicFrictionAttr(float(ph.friction))
+        mat.CreateRestitutionAttr(0.0)
+        for child in prim.GetChildren():
+            if child.HasAPI(UsdPhysics.CollisionAPI):
+                UsdShade.MaterialBindingAPI.Apply(child).Bind(
+                    pmat, UsdShade.Tokens.weakerThanDescendants, "physics")
+    stage.GetRootLayer().Save()
+    return path
+
+
+def _quat(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()
+    q = np.array([q[3], q[0], q[1], q[2]])
+    return q if q[0] >= 0 else -q
+
+
+def validate_usd(path: str | Path) -> dict:
+    """Run every registered pxr.UsdValidation validator on the stage.
+
+    Returns {"validators": n, "errors": [str], "warnings": [str]}.
+    """
+    from pxr import Usd, UsdValidation
+
+    stage = Usd.Stage.Open(str(path))
+    reg = UsdValidation.ValidationRegistry()
+    validators = reg.GetOrLoadAllValidators()
+    ctx = UsdValidation.ValidationContext(validators)
+    errors, warnings = [], []
+    for e in ctx.Validate(stage):
+        if e.HasNoError():
+            continue
+        msg = f"{e.GetName()}: {e.GetMessage()}"
+        if e.GetType() == UsdValidation.ValidationErrorType.Error:
+            errors.append(msg)
+        else:
+            warnings.append(msg)
+    return {"validators": len(validators), "errors": sorted(errors), "warnings": sorted(warnings)}

@@ -1,0 +1,178 @@
+"""Simulation check of an exported MJCF scene.
+
+1. Load with `mujoco.MjModel.from_xml_path`: a failed load is an error (PsimapError), never a warning.
+2. Initial penetration: after `mj_forward`, the deepest contact (min `contact.dist`) must be
+   >= -max_penetration. With `resolve=True`, penetrating free bodies are nudged up along the support
+   normal (+z, gravity is -z) by their depth, the file is rewritten atomically, and the nudges are
+   reported.
+3. Settle: simulate `duration` seconds; bodies resting at t = 0 (in contact) must move less than
+   `max_drift`; no NaN; no explosion (speed or height beyond reason).
+Reports simulated seconds per wall second.
+"""
+from __future__ import annotations
+
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from psimap import PsimapError
+
+
+def _load(path: Path):
+    import mujoco
+
+    try:
+        return mujoco.MjModel.from_xml_path(str(path))
+    except Exception as e:   # mujoco raises ValueError with the compiler message
+        msg = " ".join(str(e).split())
+        raise PsimapError(f"MuJoCo could not load {path}: {msg}") from None
+
+
+def _free_bodies(model) -> list[int]:
+    import mujoco
+
+    out = []
+    for j in range(model.njnt):
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            out.append(int(model.jnt_bodyid[j]))
+    return out
+
+
+def _penetrations(model, data) -> tuple[float, dict[int, float], set[int]]:
+    """(min contact dist, {free body: deepest penetration (>0)}, bodies in contact)."""
+    min_dist = np.inf
+    per_body: dict[int, float] = {}
+    touching: set[int] = set()
+    for i in range(data.ncon):
+        c = data.contact[i]
+        min_dist = min(min_dist, float(c.dist))
+        bodies = (int(model.geom_bodyid[c.geom1]), int(model.geom_bodyid[c.geom2]))
+        for b in bodies:
+            touching.add(b)
+            if c.dist < 0:
+                per_body[b] = max(per_body.get(b, 0.0), -float(c.dist))
+    return (float(min_dist) if np.isfinite(min_dist) else 0.0), per_body, touching
+
+
+def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rounds: int = 20,
+                        margin: float = 2e-4) -> dict[str, float]:
+    """Nudge penetrating free bodies up (+z) until min contact.dist >= -max_penetration.
+
+    Rewrites `path` atomically (body `pos` attributes). Returns {body name: total nudge in metres}.
+    """
+    import mujoco
+
+    from psimap.io_utils import atomic_path
+
+    path = Path(path)
+    tree = ET.parse(path)
+    bodies = {b.get("name"): b for b in tree.getroot().iter("body") if b.get("name")}
+    nudges: dict[str, float] = {}
+    for _ in range(max_rounds):
+        model = _load(path) if not nudges else _model_from_tree(tree, path)
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        min_dist, per_body, _ = _penetrations(model, data)
+        if min_dist >= -max_penetration:
+            break
+        free = set(_free_bodies(model))
+        # lift the lowest-penetrating body first: lifting a support lifts what rests on it next round
+        movable = {b: d for b, d in per_body.items() if b in free and d > max_penetration}
+        if not movable:
+            break
+        for b, depth in movable.items():
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)
+            el = bodies[name]
+            pos = np.array([float(x) for x in el.get("pos", "0 0 0").split()])
+            pos[2] += depth + margin
+            el.set("pos", " ".join(f"{v:.9g}" for v in pos))
+            nudges[name] = nudges.get(name, 0.0) + depth + margin
+    if nudges:
+        with atomic_path(path) as tmp:
+            tree.write(tmp, encoding="unicode")
+            with open(tmp, "a") as f:
+                f.write("\n")
+    return {k: float(v) for k, v in sorted(nudges.items())}
+
+
+def _model_from_tree(tree, path: Path):
+    import mujoco
+
+    # write next to the original so relative asset paths resolve
+    tmp = path.with_name(f".{path.stem}.resolve.xml")
+    try:
+        tree.write(tmp, encoding="unicode")
+        return mujoco.MjModel.from_xml_path(str(tmp))
+    except Exception as e:
+        raise PsimapError(f"MuJoCo could not load {path} after nudging: {' '.join(str(e).split())}") from None
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: float = 1e-3,
+               max_drift: float = 0.01, resolve: bool = True, max_speed: float = 5.0) -> dict:
+    """Load, penetration, settle and stability check of an MJCF scene. Returns a plain dict report:
+
+    loaded, bodies, min_contact_dist (m), nudges {body: m}, drift {body: m} for resting bodies,
+    max_drift, unsupported (bodies not in contact at t=0), nan, exploded, sim_seconds_per_wall_second,
+    passed, failures [str].
+    """
+    import mujoco
+
+    path = Path(path)
+    if not path.is_file():
+        raise PsimapError(f"MJCF file not found: {path}")
+    model = _load(path)
+    nudges = resolve_penetration(path, max_penetration) if resolve else {}
+    if nudges:
+        model = _load(path)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    min_dist, _, touching = _penetrations(model, data)
+    free = _free_bodies(model)
+    names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in free]
+    start = np.array([data.xpos[b].copy() for b in free]).reshape(-1, 3)
+    resting = [b in touching for b in free]
+    steps = int(round(duration / model.opt.timestep))
+    nan = exploded = False
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        mujoco.mj_step(model, data)
+    wall = time.perf_counter() - t0
+    end = np.array([data.xpos[b].copy() for b in free]).reshape(-1, 3)
+    if not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all()):
+        nan = True
+    else:
+        speeds = np.array([np.linalg.norm(data.cvel[b][3:]) for b in free]) if free else np.zeros(0)
+        exploded = bool((speeds > max_speed).any() or (np.abs(end - start) > 10.0).any())
+    drift = {n: float(np.linalg.norm(e - s)) for n, s, e, r in zip(names, start, end, resting) if r}
+    failures = []
+    if min_dist < -max_penetration:
+        failures.append(f"initial penetration {-min_dist * 1000:.2f} mm > {max_penetration * 1000:.1f} mm")
+    if nan:
+        failures.append("NaN in the simulation state")
+    if exploded:
+        failures.append("simulation exploded (speed or displacement out of range)")
+    moved = {n: d for n, d in drift.items() if not np.isfinite(d) or d > max_drift}
+    if moved:
+        worst = max(moved, key=lambda n: moved[n])
+        failures.append(f"{len(moved)} resting object(s) moved more than {max_drift * 100:.1f} cm "
+                        f"(worst {worst}: {moved[worst] * 100:.2f} cm)")
+    return {
+        "loaded": True,
+        "file": path.name,
+        "bodies": len(free),
+        "duration_s": float(steps * model.opt.timestep),
+        "min_contact_dist": float(min_dist),
+        "nudges": nudges,
+        "drift": dict(sorted(drift.items())),
+        "max_drift": float(max(drift.values())) if drift else 0.0,
+        "unsupported": sorted(n for n, r in zip(names, resting) if not r),
+        "nan": bool(nan),
+        "exploded": bool(exploded),
+        "sim_seconds_per_wall_second": float(steps * model.opt.timestep / max(wall, 1e-9)),
+        "passed": not failures,
+        "failures": failures,
+    }
