@@ -90,11 +90,14 @@ def camera_rays(K: np.ndarray, c2w: np.ndarray, width: int, height: int) -> np.n
         raise PsimapError(f"camera: K must be 3x3 and c2w 4x4, got {K.shape} and {c2w.shape}")
     if not (np.isfinite(K).all() and np.isfinite(c2w).all()):
         raise PsimapError("camera: K or c2w is not finite")
-    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=0)          # [3, H*W]
-    d_world = (c2w[:3, :3] @ np.linalg.solve(K, pix)).T                     # [H*W, 3]
-    origins = np.broadcast_to(c2w[:3, 3], d_world.shape)
-    return np.concatenate([origins, d_world], axis=1).astype(np.float32)
+    # direction = A [u, v, 1] with A = R K^-1: two broadcast outer products, no [3, H*W] solve.
+    A = (c2w[:3, :3] @ np.linalg.inv(K)).astype(np.float32)
+    u = (np.arange(width, dtype=np.float32) + 0.5)[None, :, None]
+    v = (np.arange(height, dtype=np.float32) + 0.5)[:, None, None]
+    rays = np.empty((height, width, 6), dtype=np.float32)
+    rays[..., :3] = c2w[:3, 3].astype(np.float32)
+    rays[..., 3:] = u * A[:, 0] + v * A[:, 1] + A[:, 2]
+    return rays.reshape(-1, 6)
 
 
 class CameraVisibility:
