@@ -43,7 +43,7 @@ def tessellation_error(tol: float) -> tuple[float, int]:
 
     S.CHORD_TOL = tol
     worst, tris = 0.0, 0
-    for r, solid, radial in ((0.1, m3d.Manifold.sphere(0.1, S.segments_for(0.1)), lambda p: np.linalg.norm(p, axis=1)),
+    for r, solid, radial in ((0.1, S.sphere(0.1), lambda p: np.linalg.norm(p, axis=1)),
                              (0.04, m3d.Manifold.cylinder(0.2, 0.04, circular_segments=S.segments_for(0.04)),
                               lambda p: np.linalg.norm(p[:, :2], axis=1))):
         mesh = S.to_trimesh(solid)

@@ -47,6 +47,19 @@ def test_segments_meet_chord_budget():
         assert n == 8 or r * (1 - math.cos(math.pi / (n - 4))) > S.CHORD_TOL * 0.5
 
 
+@pytest.mark.parametrize("radius", [0.03, 0.1])
+def test_sphere_meets_budget(radius):
+    import trimesh
+
+    mesh = S.to_trimesh(S.sphere(radius))
+    pts, _ = trimesh.sample.sample_surface_even(mesh, 5000, seed=0)
+    dev = np.abs(np.linalg.norm(pts, axis=1) - radius)
+    assert dev.max() <= S.CHORD_TOL * 1.05
+    assert np.linalg.norm(mesh.vertices, axis=1) == pytest.approx(radius, abs=1e-6)  # inscribed
+    # Coarser budget -> fewer triangles.
+    assert len(S.to_trimesh(S.sphere(radius, tol=4 * S.CHORD_TOL)).faces) < len(mesh.faces)
+
+
 @pytest.mark.parametrize("kind", list(S.FURNITURE_BUILDERS) + list(S.SMALL_BUILDERS))
 def test_shapes_watertight_and_grounded(kind):
     builder = {**S.FURNITURE_BUILDERS, **S.SMALL_BUILDERS}[kind]

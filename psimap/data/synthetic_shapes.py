@@ -63,6 +63,25 @@ def segments_for(radius: float, tol: float | None = None) -> int:
     return int(max(8, min(n, 256)) + (-max(8, min(n, 256))) % 4)  # multiple of 4: spheres need it
 
 
+def sphere(radius: float, tol: float | None = None):
+    """Geodesic sphere (manifold3d) centred at the origin whose faces stay within `tol` of the true
+    sphere. Its faces are not a circle's chords, so the segment count is refined until the
+    measured depth of the deepest face centre meets the budget (error ~ 1 / n^2)."""
+    import manifold3d as m3d
+
+    tol = CHORD_TOL if tol is None else tol
+    n = segments_for(radius, tol)
+    while True:
+        s = m3d.Manifold.sphere(radius, n)
+        mesh = s.to_mesh()
+        v = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
+        centres = v[np.asarray(mesh.tri_verts)].mean(axis=1)
+        depth = radius - float(np.linalg.norm(centres, axis=1).min())
+        if depth <= tol or n >= 512:
+            return s
+        n = min(512, max(n + 4, int(math.ceil(n * math.sqrt(depth / tol) / 4)) * 4))
+
+
 def _box(sx: float, sy: float, sz: float, x: float = 0.0, y: float = 0.0, z0: float = 0.0):
     """Axis-aligned box of size (sx, sy, sz) centred at (x, y) in plan, bottom at z0."""
     import manifold3d as m3d
@@ -182,7 +201,7 @@ def ball(rng: np.random.Generator, max_height: float = math.inf) -> Shape:
     import manifold3d as m3d
 
     r = min(rng.uniform(0.04, 0.12), max_height / 2)
-    s = m3d.Manifold.sphere(r, segments_for(r))
+    s = sphere(r)
     # The geodesic sphere has a vertex at each pole: its bottom is exactly at z = 0 after this.
     return Shape("ball", s.translate([0, 0, r]), (r, r), 2 * r, round=True, radius=r)
 
@@ -196,8 +215,11 @@ def mug(rng: np.random.Generator, max_height: float = math.inf) -> Shape:
     tube = rng.uniform(0.006, 0.009)
     ring = min(rng.uniform(0.025, 0.035), h / 2 - tube - 0.005)
     outer = m3d.Manifold.cylinder(h, r, circular_segments=segments_for(r))
-    handle = m3d.Manifold.revolve(m3d.CrossSection.circle(tube, segments_for(tube)).translate([ring, 0]),
-                                  segments_for(ring))
+    # Two tessellations stack on the torus (tube circle, ring revolution): half the budget each.
+    half_tol = CHORD_TOL / 2
+    handle = m3d.Manifold.revolve(
+        m3d.CrossSection.circle(tube, segments_for(tube, half_tol)).translate([ring, 0]),
+        segments_for(ring + tube, half_tol))
     handle = handle.rotate([90, 0, 0]).translate([r, 0, h / 2])
     cavity = m3d.Manifold.cylinder(h, r - wall, circular_segments=segments_for(r)).translate([0, 0, bottom])
     solid = (outer + handle) - cavity
