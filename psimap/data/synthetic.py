@@ -34,6 +34,7 @@ WALL_BAND = 0.55             # wall furniture is at most this deep
 ORBIT_MARGIN = 1.05          # camera orbit keeps this distance from the walls (on its axes)
 INNER_CLEAR = 0.45           # free-standing objects stay this far inside the orbit
 FURNITURE_GAP = 0.12         # free floor between pieces of furniture
+RAYS_PER_BATCH = 2_000_000   # camera rays cast at once (~150 MB of temporaries)
 
 
 def classes():
@@ -498,6 +499,30 @@ def lidar_sweep(scene, mesh: SceneMesh, mats: Materials, origin: np.ndarray, rng
     return np.column_stack([pts, inten]).astype(np.float32)
 
 
+def render(scene, mesh: SceneMesh, mats: Materials, lights: np.ndarray, K: np.ndarray, c2ws: np.ndarray,
+           width: int, height: int, noise_rng: np.random.Generator | None) -> dict:
+    """Ray cast frames c2ws [B, 4, 4]. Returns [B, H, W(, 3)] arrays: rgb (float32, [0, 1]), depth (true
+    z-depth, 0 = no surface), sensor_depth (with the sensor model when `noise_rng` is given, else the
+    true depth), gt_instance / gt_semantic (uint16)."""
+    rays = camera_rays(K, c2ws, width, height)
+    t, prim, normals = cast(scene, rays)
+    hit = prim >= 0
+    depth = np.where(hit, t, 0.0).astype(np.float32)
+    d_hit, n_hit = rays[..., 3:][hit], normals[hit]
+    points = rays[..., :3][hit] + d_hit * t[hit][:, None]
+    rgb = np.zeros(t.shape + (3,), np.float32)
+    rgb[hit] = shade(mats, mesh.face_material[prim[hit]], points, n_hit, lights)
+    gt_inst, gt_sem = label_maps(prim, mesh)
+    sensor_depth = depth
+    if noise_rng is not None:
+        cos_inc = np.zeros(t.shape, np.float32)
+        cos_inc[hit] = np.abs((n_hit * d_hit).sum(-1)) / np.linalg.norm(d_hit, axis=-1)
+        sensor_depth = N.noisy_depth(depth, cos_inc, noise_rng)
+        rgb = np.clip(rgb + noise_rng.normal(0.0, 0.008, rgb.shape).astype(np.float32), 0, 1)
+    return {"rgb": rgb, "depth": depth, "sensor_depth": sensor_depth, "gt_instance": gt_inst,
+            "gt_semantic": gt_sem}
+
+
 # ---------------------------------------------------------------------------------------- generate
 def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, height: int = 120,
              n_objects: int | None = None, label_noise: float = 0.15, lidar: bool = False,
@@ -547,41 +572,36 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
     K = intrinsics(width, height)
     c2ws = trajectory(lay, frames, r_cam)
     scene = _raycaster(mesh)
-    rays = camera_rays(K, c2ws, width, height)
-    t, prim, normals = cast(scene, rays)
-    timings["raycast"] = time.perf_counter() - t0 - sum(timings.values())
-
-    hit = prim >= 0
-    depth = np.where(hit, t, 0.0).astype(np.float32)
-    d_hit, n_hit = rays[..., 3:][hit], normals[hit]
-    points = rays[..., :3][hit] + d_hit * t[hit][:, None]
-    rgb = np.zeros(t.shape + (3,), np.float32)
-    rgb[hit] = shade(mats, mesh.face_material[prim[hit]], points, n_hit, lights)
-    cos_inc = np.zeros(t.shape, np.float32)
-    cos_inc[hit] = np.abs((n_hit * d_hit).sum(-1)) / np.linalg.norm(d_hit, axis=-1)
-    gt_inst, gt_sem = label_maps(prim, mesh)
-    if depth_noise:
-        sensor_depth = N.noisy_depth(depth, cos_inc, r_depth)
-        rgb = np.clip(rgb + r_depth.normal(0.0, 0.008, rgb.shape).astype(np.float32), 0, 1)
-    else:
-        sensor_depth = depth
-    timings["shade"] = time.perf_counter() - t0 - sum(timings.values())
-
     thing_ids = [CLASS_ID[n] for n in S.THING_CLASSES]
     stats_total: dict[str, int] = {}
     out_frames = []
-    for i in tqdm(range(frames), desc="psimap generate: frames", disable=not progress, leave=False):
-        inst, sem, st = N.pseudo_labels(gt_inst[i], gt_sem[i], thing_ids, noise, r_label)
-        for k, v in st.items():
-            stats_total[k] = stats_total.get(k, 0) + v
-        pose = N.perturb_pose(c2ws[i], pose_noise, r_pose)
-        pts = None
-        if lidar and i % max(1, lidar_every) == 0:
-            pts = lidar_sweep(scene, mesh, mats, c2ws[i][:3, 3], r_lidar)
-        out_frames.append(Frame(rgb=rgb[i], depth=sensor_depth[i], K=K.copy(), c2w=pose, semantic=sem,
-                                instance=inst, lidar=pts, name=f"frame_{i:05d}",
-                                gt_semantic=gt_sem[i], gt_instance=gt_inst[i]))
-    timings["labels"] = time.perf_counter() - t0 - sum(timings.values())
+    n_surface = n_valid = 0
+    # Frames are ray cast in batches of a bounded number of rays, so memory stays flat at any size.
+    batch = max(1, RAYS_PER_BATCH // (width * height))
+    bar = tqdm(total=frames, desc="psimap generate: frames", disable=not progress, leave=False)
+    for start in range(0, frames, batch):
+        idx = range(start, min(frames, start + batch))
+        tb = time.perf_counter()
+        r = render(scene, mesh, mats, lights, K, c2ws[idx.start:idx.stop], width, height,
+                   r_depth if depth_noise else None)
+        n_surface += int((r["depth"] > 0).sum())
+        n_valid += int((r["sensor_depth"] > 0).sum())
+        timings["render"] = timings.get("render", 0.0) + time.perf_counter() - tb
+        tb = time.perf_counter()
+        for j, i in enumerate(idx):
+            inst, sem, st = N.pseudo_labels(r["gt_instance"][j], r["gt_semantic"][j], thing_ids, noise, r_label)
+            for k, v in st.items():
+                stats_total[k] = stats_total.get(k, 0) + v
+            pose = N.perturb_pose(c2ws[i], pose_noise, r_pose)
+            pts = None
+            if lidar and i % max(1, lidar_every) == 0:
+                pts = lidar_sweep(scene, mesh, mats, c2ws[i][:3, 3], r_lidar)
+            out_frames.append(Frame(rgb=r["rgb"][j], depth=r["sensor_depth"][j], K=K.copy(), c2w=pose,
+                                    semantic=sem, instance=inst, lidar=pts, name=f"frame_{i:05d}",
+                                    gt_semantic=r["gt_semantic"][j], gt_instance=r["gt_instance"][j]))
+            bar.update(1)
+        timings["labels"] = timings.get("labels", 0.0) + time.perf_counter() - tb
+    bar.close()
 
     import trimesh
 
@@ -592,13 +612,12 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
                 gt_objects=mesh.objects, gt_instances=instances)
     timings["write"] = time.perf_counter() - t0 - sum(timings.values())
 
-    valid_true = depth > 0
     return {
         "out": str(Path(out_dir)), "seed": int(seed), "frames": int(frames), "width": int(width),
         "height": int(height), "objects": len(lay.objects),
         "room": {"half_x": lay.half_x, "half_y": lay.half_y, "height": lay.height, "ceiling": lay.ceiling},
         "instances": instances,
-        "invalid_depth_fraction": float(1.0 - (sensor_depth > 0).sum() / max(valid_true.sum(), 1)),
+        "invalid_depth_fraction": float(1.0 - n_valid / max(n_surface, 1)),
         "label_noise": stats_total,
         "timings": timings, "seconds": time.perf_counter() - t0,
     }
