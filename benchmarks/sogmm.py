@@ -173,8 +173,9 @@ def main() -> int:
     fig.savefig(OUT / "sogmm_budget.png", dpi=120)
     notes.append("Synthetic room: 6x5x3 m, 6 boxes, 2 cylinders, a ball; 3 mm noise along the normal "
                  "(mean |noise| 2.4 mm). Budget sweep rows use max_extent = 1 m. "
-                 "Fit time = the fit_sogmm call, voxel downsampling included (the normals check is not timed). "
-                 "No-downsampling row: every point fitted, the budget near the noise level. Plot: bench_out/sogmm_budget.png. "
+                 "Fit time = the fit_sogmm call, voxel downsampling included (the normals check is "
+                 "not timed). No-downsampling row: every point fitted, the budget near the noise level. "
+                 "Plot: bench_out/sogmm_budget.png. "
                  "Target: <= 30 s for 1 M points on this machine (2 cores).")
     append_results("SOGMM prior: fit time, K and residual vs budget", markdown_table(header, rows),
                    " ".join(notes), command="python benchmarks/sogmm.py")

@@ -208,7 +208,8 @@ def test_deterministic():
     c = type(a).from_arrays(a.as_arrays())
     for f in ("means", "covs", "normals", "counts"):
         np.testing.assert_array_equal(getattr(a, f), getattr(c, f))
-    s1, s2, s3 = sample_surfels(a, 500, seed=1), sample_surfels(a, 500, seed=1), sample_surfels(a, 500, seed=2)
+    s1, s2 = sample_surfels(a, 500, seed=1), sample_surfels(a, 500, seed=1)
+    s3 = sample_surfels(a, 500, seed=2)
     for x, y in zip(s1, s2):
         np.testing.assert_array_equal(x, y)
     assert not np.array_equal(s1[0], s3[0])
@@ -307,7 +308,8 @@ def test_geo_loss_zero_on_prior_and_equals_offset():
     assert geo_loss(means, normals, index, lambda_n=0.5).item() < 1e-6
     # push every surfel 1 mm along its component normal: the loss is exactly that offset
     shifted = (means + 0.001 * normals).requires_grad_(True)
-    tilted = torch.nn.functional.normalize(normals + 0.3 * torch.as_tensor(g.tangents[:, 0], dtype=torch.float32), dim=1)
+    t0 = torch.as_tensor(g.tangents[:, 0], dtype=torch.float32)
+    tilted = torch.nn.functional.normalize(normals + 0.3 * t0, dim=1)
     loss = geo_loss(shifted, tilted, index, lambda_n=0.5)
     expected = 0.001 + 0.5 * (1 - 1 / np.sqrt(1 + 0.09))
     assert abs(loss.item() - expected) < 1e-5

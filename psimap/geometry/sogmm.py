@@ -227,7 +227,8 @@ def _seed_labels(xyz: np.ndarray, cell_size: float, min_points: int) -> np.ndarr
         from scipy.spatial import cKDTree
 
         K = len(counts)
-        centres = np.stack([np.bincount(labels, xyz[:, d], minlength=K) for d in range(3)], 1) / counts[:, None]
+        centres = np.stack([np.bincount(labels, xyz[:, d], minlength=K) for d in range(3)], 1)
+        centres /= counts[:, None]
         big = np.flatnonzero(~small)
         moved = small[labels]
         _, nn = cKDTree(centres[big]).query(xyz[moved])
