@@ -24,13 +24,19 @@ SIZES = [(60, 80, 60), (60, 160, 120), (60, 320, 240)]
 SEEDS = (0, 1)
 
 
-def cold_run(out: Path, frames: int, w: int, h: int, seed: int) -> float:
-    """Wall seconds of a fresh `psimap generate` process (imports included), as a user sees it."""
+def cold_run(out: Path, frames: int, w: int, h: int, seed: int) -> tuple[float, float]:
+    """(wall s, CPU s) of a fresh `psimap generate` process (imports included), as a user sees it.
+    CPU time (user + sys of the child) does not depend on what else the machine runs."""
+    import resource
+
     cmd = [sys.executable, "-m", "psimap", "generate", str(out), "--seed", str(seed), "--frames", str(frames),
            "--width", str(w), "--height", str(h)]
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True, cwd=ROOT)
-    return time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
 
 
 def tessellation_error(tol: float) -> tuple[float, int]:
@@ -63,7 +69,7 @@ def main() -> None:
     G.generate(tmp / "warmup", seed=0, frames=4, width=32, height=24)  # imports + first-call costs
     rows, plot = [], []
     for frames, w, h in SIZES:
-        warm, cpu, cold, invalid, errs = [], [], [], [], []
+        warm, cpu, cold, cold_cpu, invalid, errs = [], [], [], [], [], []
         for seed in SEEDS:
             t0, c0 = time.perf_counter(), time.process_time()
             s = G.generate(tmp / f"w{w}_{seed}", seed=seed, frames=frames, width=w, height=h)
@@ -72,13 +78,17 @@ def main() -> None:
             invalid.append(s["invalid_depth_fraction"])
             ln = s["label_noise"]
             errs.append((ln["merged"] + ln["split"] + ln["missed"] + ln["flipped"]) / max(ln["instances"], 1))
-            cold.append(cold_run(tmp / f"c{w}_{seed}", frames, w, h, seed))
+            wall, c = cold_run(tmp / f"c{w}_{seed}", frames, w, h, seed)
+            cold.append(wall)
+            cold_cpu.append(c)
         rays = frames * w * h
-        rows.append([frames, f"{w}x{h}", f"{np.mean(cold):.2f}", f"{np.mean(warm):.2f}", f"{np.mean(cpu):.2f}",
+        rows.append([frames, f"{w}x{h}", f"{np.mean(cold):.2f}", f"{np.mean(cold_cpu):.2f}",
+                     f"{np.mean(warm):.2f}", f"{np.mean(cpu):.2f}",
                      f"{1e3 * np.mean(warm) / frames:.1f}", f"{rays / np.mean(warm) / 1e6:.2f}",
                      f"{100 * np.mean(invalid):.1f}", f"{np.mean(errs):.2f}"])
         plot.append((rays, np.mean(cold), np.mean(warm)))
-    table = markdown_table(["frames", "size", "cold CLI s", "warm s", "CPU s", "ms/frame", "Mrays/s",
+    table = markdown_table(["frames", "size", "cold CLI s", "cold CLI CPU s", "warm s", "warm CPU s",
+                            "ms/frame (warm)", "Mrays/s (warm)",
                             "invalid depth %", "label errors / instance view"], rows)
 
     tol_rows = []
@@ -112,9 +122,11 @@ def main() -> None:
     fig.tight_layout()
     fig.savefig(OUT / "generate.png", dpi=120)
 
-    notes = (f"Mean over seeds {list(SEEDS)}; {os.cpu_count()} CPU cores shared with other jobs (wall time "
-             "varies with load; CPU s is the process's own CPU time). Cold = a fresh `python -m psimap "
-             "generate` process including ~4-5 s of imports (open3d, trimesh, manifold3d, scipy). Label "
+    load = os.getloadavg()[0]
+    notes = (f"Mean over seeds {list(SEEDS)}; {os.cpu_count()} CPU cores shared with other jobs (1-min load "
+             f"average {load:.1f} at the end: wall time grows with load, CPU s is the process's own CPU "
+             "time and does not). Cold = a fresh `python -m psimap "
+             "generate` process, imports (open3d, trimesh, manifold3d, scipy) included. Label "
              "errors at the default noise 0.15. Chord budget table: the curved-surface error the "
              "tessellation budget buys and what it costs (default "
              f"{1e3 * default_tol:.2f} mm). Plot: bench_out/generate.png.")
