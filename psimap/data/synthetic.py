@@ -318,14 +318,22 @@ def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return c2w
 
 
+def _object_centre(p: Placed) -> np.ndarray:
+    lo, hi = np.asarray(p.solid.bounding_box()).reshape(2, 3)
+    return (lo + hi) / 2
+
+
 def trajectory(lay: Layout, n_frames: int, rng: np.random.Generator) -> np.ndarray:
-    """[F, 4, 4] camera-to-world poses: two orbits inside the room at changing heights, each camera
-    looking across the room at a point that sweeps between the middle and the far furniture, so
-    every object is seen from several sides (and what faces a wall or the floor is never seen)."""
+    """[F, 4, 4] camera-to-world poses: two orbits inside the room at changing heights. The gaze
+    tours the objects (sorted by azimuth) three times while the camera circles twice, so each
+    object is looked at from several positions; what faces a wall or the floor is never seen."""
     ax, ay = lay.orbit
     theta0 = rng.uniform(0, 2 * math.pi)
-    ph = rng.uniform(0, 2 * math.pi, size=5)
+    ph = rng.uniform(0, 2 * math.pi, size=4)
     loops = 2.0 if n_frames >= 8 else 1.0
+    tours = 1.5 * loops
+    stops = sorted((_object_centre(p) for p in lay.objects), key=lambda c: math.atan2(c[1], c[0]))
+    stops = np.array(stops or [[0.0, 0.0, 0.5]])
     poses = []
     for i in range(n_frames):
         t = i / max(n_frames, 1)
@@ -334,12 +342,13 @@ def trajectory(lay: Layout, n_frames: int, rng: np.random.Generator) -> np.ndarr
         z = float(np.clip(1.25 + 0.5 * math.sin(2 * math.pi * t + ph[1]) + 0.15 * math.sin(5 * th + ph[2]),
                           0.6, lay.height - 0.4))
         eye = np.array([ax * s * math.cos(th), ay * s * math.sin(th), z])
-        # Gaze point: across the room (angle th + pi, swinging +-0.6 rad), from the middle (rho 0)
-        # out to the far wall furniture (rho 1.1 of the orbit).
-        gaze = th + math.pi + 0.6 * math.sin(1.7 * th + ph[3])
-        rho = 0.55 + 0.55 * math.sin(1.3 * th + ph[4])
-        target = np.array([rho * ax * math.cos(gaze), rho * ay * math.sin(gaze),
-                           0.5 + 0.25 * math.sin(th + ph[2])])
+        # Dwell on each stop, then glide to the next (smoothstep), so views stay steady.
+        u = tours * len(stops) * t + ph[3] / (2 * math.pi) * len(stops)
+        k, f = int(u) % len(stops), u - int(u)
+        f = f * f * (3 - 2 * f)
+        target = (1 - f) * stops[k] + f * stops[(k + 1) % len(stops)]
+        if np.linalg.norm(target[:2] - eye[:2]) < 0.3:  # never look straight down at the feet
+            target = target + 0.5 * np.r_[-eye[:2] / max(np.linalg.norm(eye[:2]), 1e-9), 0.0]
         poses.append(look_at(eye, target))
     return np.stack(poses)
 
