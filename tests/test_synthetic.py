@@ -128,6 +128,28 @@ def test_layout_physically_valid(seed):
     assert np.all(np.abs(c2w[:, :2, 3]) < [lay.half_x - 0.3, lay.half_y - 0.3])
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_trajectory_sees_objects_from_several_sides_but_not_everything(seed):
+    lay = G.make_layout(np.random.default_rng(seed))
+    mesh = G.build_mesh(lay)
+    c2w = G.trajectory(lay, 60, np.random.default_rng(seed))
+    t, prim, _ = G.cast(G._raycaster(mesh), G.camera_rays(G.intrinsics(64, 48), c2w, 64, 48))
+    inst, _ = G.label_maps(prim, mesh)
+    seen_often = 0
+    for o in lay.objects:
+        vis = (inst == o.instance_id).reshape(60, -1).sum(1) >= 3
+        seen_often += vis.sum() >= 3
+        if o.shape.kind in S.FURNITURE:
+            az = np.sort(np.arctan2(c2w[vis, 1, 3] - o.xyz[1], c2w[vis, 0, 3] - o.xyz[0]))
+            spread = 2 * np.pi - np.diff(np.r_[az, az[0] + 2 * np.pi]).max()
+            assert vis.sum() >= 8 and spread > np.radians(45), f"{o.shape.kind} seen from too few places"
+    assert seen_often >= 0.7 * len(lay.objects)
+    hit = np.zeros(len(mesh.faces), bool)
+    hit[prim[prim >= 0]] = True
+    # Undersides, backs against walls, outer wall faces: never observed.
+    assert hit[mesh.face_instance > 0].mean() < 0.9 and hit.mean() < 0.9
+
+
 def test_layouts_vary_and_some_objects_touch():
     kinds, counts, rooms, touching = set(), set(), set(), 0
     for seed in range(8):
