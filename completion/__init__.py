@@ -129,24 +129,25 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                 else f"extent {extent:.4f} m < 3 voxels ({3 * tol:.4f} m)")
         return _unchanged(partial, "skipped", f"tiny partial: {what}", tolerance=tol,
                           seconds=time.perf_counter() - t0)
+    from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
+    from .freespace import check_cameras, known_free
+    from .meshops import is_solid, solidify
+    from .support import normalise_planes, planes_from_background, support_below
+
+    # Context is validated before any early return so malformed input always fails loudly.
+    centre = 0.5 * (points.min(0) + points.max(0))
+    background = context.get("background")
+    planes = normalise_planes(context.get("support_planes"), centre)
+    cams = check_cameras(context.get("cameras"), context.get("depths"))
     coverage = directional_coverage(points)
     threshold = float(context.get("coverage_threshold", 0.9))
     if coverage >= threshold and forced == "auto":
         return _unchanged(partial, "none", f"fully observed: coverage {coverage:.2f} >= {threshold:.2f}",
                           coverage=coverage, tolerance=tol, seconds=time.perf_counter() - t0)
 
-    from .constraints import blocking_planes, carve_free, check, subtract_obstacles
-    from .freespace import check_cameras, known_free
-    from .meshops import is_solid, solidify
-    from .support import normalise_planes, planes_from_background, support_below
-
-    centre = 0.5 * (points.min(0) + points.max(0))
-    background = context.get("background")
-    planes = normalise_planes(context.get("support_planes"), centre)
     planes += planes_from_background(background, points, reach=2.0 * extent)
     support = support_below(planes, points, reach=1.5 * extent + 3 * tol)
     blocking = blocking_planes(planes, points, tol)
-    cams = check_cameras(context.get("cameras"), context.get("depths"))
     free_fn = (lambda q: known_free(q, cams, 2 * tol)) if cams else None
     obstacles = [solidify(m, tol) for m in (context.get("neighbours") or []) if m is not None and len(m.faces)]
     if background is not None and is_solid(background):
@@ -193,6 +194,9 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                 candidates[name] = {"accepted": False, "why": stats.get("reason", "no closed fit")}
                 continue
             mesh = out
+            if name in ("sphere", "cylinder", "box", "revolution", "plugin"):
+                mesh, n_parts = attach_outliers(mesh, points, tol)
+                stats["parts_added"] = n_parts
             if free_fn is not None:
                 frac = check(mesh, points, tol, free_fn=free_fn, pitch=tol)["free_space_fraction"]
                 if frac > FREE_CARVE:
@@ -206,7 +210,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
 
             rms, inl = fit_quality(mesh, points, tol)
             ok = inl >= ACCEPT_INLIERS or forced == name
-            candidates[name] = {"accepted": bool(ok), "fit_rms": rms, "inliers": inl,
+            candidates[name] = {"accepted": bool(ok), "fit_rms": rms, "inliers": inl, **stats,
                                 "why": "" if ok else f"only {inl:.0%} of points within {tol * 1000:.1f} mm"}
             if name == "support":
                 fallback = (name, mesh, rms, inl)

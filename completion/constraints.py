@@ -13,21 +13,60 @@ import numpy as np
 
 
 def carve_free(mesh, points: np.ndarray, free_fn, pitch: float):
-    """Remove the known-free cells from closed `mesh`; returns a closed mesh (or None if empty)."""
-    from scipy import ndimage
-
-    from .meshops import grid_points, inside, occupancy_to_mesh
+    """Remove the known-free cells from closed `mesh` by an exact boolean difference with the
+    closed surface around them, so the rest of the surface keeps its shape. Cells holding observed
+    points are never removed. Returns a closed mesh (or None when nothing is left)."""
+    from .meshops import from_manifold, grid_points, occupancy_to_mesh, to_manifold
 
     lo, hi = mesh.bounds
-    centres, shape, origin, pitch = grid_points(lo - pitch, hi + pitch, pitch)
-    occ = inside(centres, mesh)
-    cand = np.flatnonzero(occ)
-    occ[cand[free_fn(centres[cand])]] = False
-    occ = occ.reshape(shape)
+    # The grid reaches past the mesh so the cutter also covers the shell of boundary cells.
+    centres, shape, origin, pitch = grid_points(lo - 2 * pitch, hi + 2 * pitch, pitch)
+    free = free_fn(centres).reshape(shape)
     idx = np.clip(np.floor((points - origin) / pitch + 0.5).astype(int), 0, np.array(shape) - 1)
-    occ[tuple(idx.T)] = True
-    occ = ndimage.binary_fill_holes(occ)
-    return occupancy_to_mesh(occ, origin, pitch)
+    free[tuple(idx.T)] = False
+    if not free.any():
+        return mesh
+    cutter = occupancy_to_mesh(free, origin, pitch)
+    if cutter is None:
+        return mesh
+    man = to_manifold(mesh) - to_manifold(cutter)
+    return None if man.is_empty() else from_manifold(man)
+
+
+def attach_outliers(mesh, points: np.ndarray, tolerance: float, min_points: int = 20):
+    """Observed parts a fitted shape leaves outside (a mug's handle on a cylinder) are added back:
+    each cluster of outside points, with its nearest points on the shape, becomes a convex hull
+    unioned onto the shape. Returns the new closed mesh and the number of parts added."""
+    import trimesh
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from .meshops import distance_to_surface, from_manifold, inside, to_manifold
+
+    far = distance_to_surface(points, mesh) > 2 * tolerance
+    far &= ~inside(points, mesh)
+    if far.sum() < min_points:
+        return mesh, 0
+    out = points[far]
+    pairs = cKDTree(out).query_pairs(2.5 * tolerance, output_type="ndarray")
+    from scipy.sparse import coo_matrix
+
+    adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(out), len(out)))
+    n, lab = connected_components(adj, directed=False)
+    man, added = to_manifold(mesh), 0
+    for k in range(n):
+        part = out[lab == k]
+        if len(part) < min_points:
+            continue
+        anchor, _, _ = trimesh.proximity.closest_point(mesh, part)
+        try:
+            hull = trimesh.convex.convex_hull(np.concatenate([part, anchor]))
+        except Exception:       # degenerate (flat) cluster: nothing solid to add
+            continue
+        if hull.volume > 0:
+            man = man + to_manifold(hull)
+            added += 1
+    return (from_manifold(man), added) if added else (mesh, 0)
 
 
 def blocking_planes(planes, points: np.ndarray, tolerance: float):
@@ -78,7 +117,6 @@ def check(mesh, points: np.ndarray, tolerance: float, obstacles=(), planes=(), f
           pitch: float | None = None) -> dict:
     """Measured constraint state of a closed result mesh (all volumes in m³, distances in m)."""
     from .coverage import fit_quality
-    from .freespace import free_fraction
     from .meshops import volume_of_intersection
 
     rms, inliers = fit_quality(mesh, points, tolerance)

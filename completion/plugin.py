@@ -39,14 +39,19 @@ def align_to_points(mesh, points: np.ndarray, tolerance: float, spacing: float):
 
     from .meshops import sample_surface
 
+    mesh = mesh.copy()
+    p_lo, p_hi = points.min(0), points.max(0)
+    m_lo, m_hi = mesh.bounds
+    ratio = float(np.ptp(points, axis=0).max() / max(np.ptp(mesh.vertices, axis=0).max(), 1e-12))
+    if not 0.5 <= ratio <= 2.0 or (p_hi < m_lo).any() or (p_lo > m_hi).any():
+        # Proposal in its own frame / units: start from matched box centres and sizes.
+        mesh.apply_translation(-0.5 * (m_lo + m_hi))
+        mesh.apply_scale(ratio)
+        mesh.apply_translation(0.5 * (p_lo + p_hi))
     target = sample_surface(mesh, spacing, max_points=60_000)
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
     init = np.eye(4)
-    p_lo, p_hi = points.min(0), points.max(0)
-    m_lo, m_hi = mesh.bounds
-    if (p_hi < m_lo).any() or (p_lo > m_hi).any():      # no overlap: start from matched centres
-        init[:3, 3] = 0.5 * (m_lo + m_hi) - 0.5 * (p_lo + p_hi)
     extent = float(np.ptp(points, axis=0).max())
     est = o3d.pipelines.registration.TransformationEstimationPointToPoint(with_scaling=True)
     crit = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60)
@@ -55,6 +60,5 @@ def align_to_points(mesh, points: np.ndarray, tolerance: float, spacing: float):
     reg = o3d.pipelines.registration.registration_icp(src, tgt, 2 * tolerance, reg.transformation,
                                                       est, crit)
     # reg maps points -> mesh frame; the mesh goes the other way.
-    out = mesh.copy()
-    out.apply_transform(np.linalg.inv(reg.transformation))
-    return out
+    mesh.apply_transform(np.linalg.inv(reg.transformation))
+    return mesh

@@ -53,6 +53,23 @@ def _circle_fit(xy: np.ndarray):
     return c, float(np.sqrt(r2))
 
 
+def _robust_circle(xy: np.ndarray, init, tolerance: float):
+    """Geometric circle fit (radial residuals, Cauchy loss) from an algebraic start: points on the
+    caps lie inside the circle and would bias a plain least-squares fit. Returns (centre, radius)."""
+    from scipy.optimize import least_squares
+
+    c0, r0 = init
+
+    def resid(x):
+        return np.linalg.norm(xy - x[:2], axis=1) - x[2]
+
+    sol = least_squares(resid, np.array([c0[0], c0[1], r0]), loss="cauchy", f_scale=0.2 * tolerance,
+                        x_scale=max(r0, tolerance))
+    if not (np.isfinite(sol.x).all() and sol.x[2] > 0):
+        return c0, r0
+    return sol.x[:2], float(sol.x[2])
+
+
 def _frame(axis: np.ndarray) -> np.ndarray:
     """Rotation [3, 3] whose third column is `axis` (unit)."""
     axis = axis / np.linalg.norm(axis)
@@ -86,14 +103,7 @@ def fit_cylinder(points: np.ndarray, tolerance: float, support=None):
         circ = _circle_fit(local[:, :2])
         if circ is None:
             continue
-        # Points on the caps lie inside the circle: refit on the points near the wall.
-        for _ in range(3):
-            c2, r = circ
-            wall = np.abs(np.linalg.norm(local[:, :2] - c2, axis=1) - r) <= 2 * tolerance
-            if wall.sum() < 8 or (refit := _circle_fit(local[wall, :2])) is None:
-                break
-            circ = refit
-        c2, r = circ
+        c2, r = _robust_circle(local[:, :2], circ, tolerance)
         if r > 5 * np.ptp(local[:, :2], axis=0).max():
             continue
         res = np.median(np.abs(np.linalg.norm(local[:, :2] - c2, axis=1) - r))

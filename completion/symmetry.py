@@ -58,16 +58,16 @@ def fit_revolution(points: np.ndarray, tolerance: float, support=None):
         stats = {"arc_deg": float(arc), "on_profile": float(on.mean()), "outside": float(outside.mean())}
         score = on.mean() - outside.mean()
         if best is None or score > best[0]:
-            best = (score, R, c2, z.min(), step, profile, stats)
+            best = (score, R, c2, z.min(), z.max(), step, profile, stats)
     if best is None:
         return None, {"reason": "too few points per slice for a circle fit"}
-    _, R, c2, z0, step, profile, stats = best
+    _, R, c2, z0, z1, step, profile, stats = best
     if stats["arc_deg"] < _MIN_ARC_DEG:
         return None, {**stats, "reason": f"points span only {stats['arc_deg']:.0f} deg around the axis"}
     if stats["on_profile"] < 0.6 or stats["outside"] > 0.05:
         return None, {**stats, "reason": "points do not lie on one surface of revolution"}
-    zs = z0 + step * (np.arange(len(profile)) + 0.5)
-    bottom, top = z0, z0 + step * len(profile)
+    zs = np.minimum(z0 + step * (np.arange(len(profile)) + 0.5), z1)
+    bottom, top = z0, z1
     s = _support_level(support, R[:, 2], R @ np.array([c2[0], c2[1], 0.0]))
     if s is not None and s < bottom:
         bottom = s

@@ -1,0 +1,242 @@
+"""psimap.completion: symmetric / primitive completion, wall and neighbour constraints, free space,
+fully observed and degenerate inputs, the plugin hook."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from psimap import PsimapError
+from psimap.completion import CompletionResult, complete
+from psimap.completion.freespace import check_cameras, known_free
+from psimap.completion.meshops import (from_manifold, is_solid, sample_surface, to_manifold,
+                                       volume_of_intersection)
+
+VOXEL = 0.005
+
+
+def chamfer(a, b, n=20000) -> float:
+    """Symmetric mean closest-point distance between two meshes (metres)."""
+    from scipy.spatial import cKDTree
+
+    pa, _ = trimesh.sample.sample_surface(a, n, seed=0)
+    pb, _ = trimesh.sample.sample_surface(b, n, seed=1)
+    return 0.5 * (cKDTree(pb).query(pa)[0].mean() + cKDTree(pa).query(pb)[0].mean())
+
+
+def seen_side(mesh, view_dir, spacing=0.003, noise=0.0, seed=0):
+    """Surface points of mesh whose normal faces the viewer looking along -view_dir. [P, 3]."""
+    pts = sample_surface(mesh, spacing, seed=seed)
+    _, _, fid = trimesh.proximity.closest_point(mesh, pts)
+    keep = mesh.face_normals[fid] @ np.asarray(view_dir, float) > 0.05
+    pts = pts[keep]
+    if noise:
+        pts = pts + np.random.default_rng(seed).normal(0, noise, pts.shape)
+    return pts
+
+
+TABLE = [((0.0, 0.0, 1.0), 0.0)]
+
+
+def test_half_seen_sphere_completed_to_the_full_sphere():
+    gt = trimesh.creation.icosphere(5, radius=0.05)
+    gt.apply_translation([0, 0, 0.05])
+    pts = seen_side(gt, [1, 0, 0.2], noise=0.0005)
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE})
+    assert isinstance(res, CompletionResult) and res.completed and res.method == "sphere"
+    assert res.coverage < 0.9 and "coverage" in res.reason
+    assert is_solid(res.mesh)
+    assert chamfer(res.mesh, gt) < 0.0015
+    assert abs(res.mesh.volume - gt.volume) / gt.volume < 0.05
+    assert res.observed_on_surface > 0.95
+    # The partial alone is far from the whole object: the test would catch a no-op.
+    assert chamfer(trimesh.convex.convex_hull(pts), gt) > 0.005
+
+
+def test_half_seen_vase_completed_by_rotational_symmetry():
+    prof = np.array([[0, 0], [0.03, 0], [0.042, 0.05], [0.025, 0.12], [0.015, 0.16], [0, 0.16]])
+    gt = trimesh.creation.revolve(prof, sections=96)
+    gt.apply_translation([0.3, -0.2, 0.0])
+    pts = seen_side(gt, [0, -1, 0.3], noise=0.0005)
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE})
+    assert res.completed and res.method == "revolution", res.reason
+    assert chamfer(res.mesh, gt) < 0.002
+    assert np.allclose(res.mesh.bounds, gt.bounds, atol=0.004)
+
+
+def _wall(y0):
+    wall = trimesh.creation.box([1.0, 0.05, 0.6])
+    wall.apply_translation([0, y0 + 0.025, 0.3])
+    return wall
+
+
+def test_object_against_wall_does_not_penetrate_it():
+    # A ball pressed into a wall (the GT is cut flat by it); the front is seen. A sphere fit alone
+    # runs 2 cm into the wall; completion must cut it at the wall.
+    y0 = 0.03
+    ball = trimesh.creation.icosphere(5, radius=0.05)
+    ball.apply_translation([0, 0, 0.06])
+    gt = from_manifold(to_manifold(ball).trim_by_plane((0, -1, 0), -y0))
+    pts = seen_side(gt, [0, -1, 0.2])
+    wall = _wall(y0)
+    bare = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "sphere"})
+    assert volume_of_intersection(bare.mesh, wall) > 1e-5      # the unconstrained fit does penetrate
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "background": wall})
+    assert res.completed, res.reason
+    assert volume_of_intersection(res.mesh, wall) < 1e-9
+    assert res.mesh.bounds[1, 1] <= y0 + 1e-6
+    assert res.collision_volume < 1e-9
+    assert chamfer(res.mesh, gt) < 0.002
+    # Planes alone (no background mesh) give the same guarantee.
+    res2 = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": [((0, 1, 0), y0)]})
+    assert res2.mesh.bounds[1, 1] <= y0 + 1e-6
+
+
+def test_box_between_wall_and_neighbour_stays_clear_of_both():
+    y0 = 0.1
+    gt = trimesh.creation.box([0.1, 0.06, 0.12])
+    gt.apply_translation([0, y0 - 0.03, 0.06])
+    neighbour = trimesh.creation.box([0.05, 0.06, 0.12])
+    neighbour.apply_translation([0.075, y0 - 0.03, 0.06])
+    # Seen from the front-left: front, left side and top. The fitted box touches both obstacles.
+    pts = seen_side(gt, [-0.5, -1, 0.6], noise=0.0005)
+    pts_n = seen_side(neighbour, [0.3, -1, 0.6])
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE,
+                          "background": _wall(y0),
+                          "neighbours": [trimesh.convex.convex_hull(pts_n), neighbour]})
+    assert res.completed and res.method == "box", res.reason
+    assert volume_of_intersection(res.mesh, neighbour) < 2e-7
+    assert volume_of_intersection(res.mesh, _wall(y0)) < 1e-9
+    assert chamfer(res.mesh, gt) < 0.003
+
+
+def test_fully_observed_object_is_returned_unchanged():
+    gt = trimesh.creation.box([0.1, 0.08, 0.06])
+    pts = sample_surface(gt, 0.003)
+    res = complete(gt, {"points": pts, "voxel_size": VOXEL})
+    assert res.completed is False and res.method == "none"
+    assert res.mesh is gt
+    assert "fully observed" in res.reason and res.coverage >= 0.9
+    # Without points the mesh's own surface is the observation: also unchanged.
+    assert complete(gt, {}).mesh is gt
+
+
+def test_empty_and_tiny_partials_are_skipped_with_a_reason():
+    res = complete(None, {"points": np.zeros((0, 3))})
+    assert not res.completed and res.method == "skipped" and "empty" in res.reason
+    res = complete(trimesh.Trimesh(), {})
+    assert not res.completed and "empty" in res.reason
+    few = np.random.default_rng(0).random((10, 3)) * 0.05
+    res = complete(None, {"points": few, "voxel_size": VOXEL})
+    assert res.method == "skipped" and "tiny" in res.reason and "10 observed points" in res.reason
+    speck = np.random.default_rng(0).random((500, 3)) * 0.005      # 5 mm speck, 5 mm voxels
+    res = complete(None, {"points": speck, "voxel_size": VOXEL})
+    assert res.method == "skipped" and "extent" in res.reason
+    # Non-finite rows are dropped, not propagated.
+    nan_pts = np.full((100, 3), np.nan)
+    assert complete(None, {"points": nan_pts}).method == "skipped"
+
+
+def test_invalid_input_raises_one_clear_error():
+    with pytest.raises(PsimapError, match="points must be"):
+        complete(None, {"points": np.zeros((10, 2))})
+    with pytest.raises(PsimapError, match="unknown method"):
+        complete(None, {"points": np.zeros((10, 3)), "method": "magic"})
+    with pytest.raises(PsimapError, match="partial must be"):
+        complete("mesh.ply", {})
+    pts = sample_surface(trimesh.creation.box([0.1, 0.1, 0.1]), 0.005)[:2000]
+    with pytest.raises(PsimapError, match="cameras but"):
+        complete(None, {"points": pts, "voxel_size": VOXEL, "cameras": [None], "depths": []})
+    with pytest.raises(PsimapError, match="support_planes"):
+        complete(None, {"points": pts[pts[:, 0] > 0], "voxel_size": VOXEL, "support_planes": [((0, 0, 0), 1)]})
+
+
+def _camera(eye, target, w=128, h=96, f=100.0):
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    up = np.array([0, 1.0, 0]) if abs(z[2]) > 0.9 else np.array([0, 0, 1.0])
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([x, y, z], 1)
+    c2w[:3, 3] = eye
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
+    return K, c2w, w, h
+
+
+def _depth(mesh, cam):
+    import open3d as o3d
+
+    K, c2w, w, h = cam
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+    dw = d @ c2w[:3, :3].T
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    rays = np.concatenate([np.broadcast_to(c2w[:3, 3], dw.shape), dw], 1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return np.where(np.isfinite(t), t, 0.0).reshape(h, w)
+
+
+def test_known_free_projects_points_into_depth_maps():
+    wall = trimesh.creation.box([4, 4, 0.01])
+    wall.apply_translation([0, 0, 1.005])            # a plane facing the camera at z = 1
+    cam = _camera(np.zeros(3), [0, 0, 1.0])
+    depth = _depth(wall, cam)
+    assert np.allclose(depth[depth > 0], 1.0, atol=1e-4)
+    depth[0, :] = 0.0                                  # a row with no returns says nothing
+    cams = check_cameras([cam], [depth])
+    q = np.array([[0, 0, 0.5], [0, 0, 0.99], [0, 0, 1.5], [0, 0, -0.5], [5, 0, 0.5]])
+    assert known_free(q, cams, 0.02).tolist() == [True, False, False, False, False]
+    K, c2w, w, h = cam
+    corner = np.linalg.inv(K) @ np.array([w / 2, 0.5, 1.0]) * 0.5     # projects into the empty row
+    assert not known_free((c2w[:3, :3] @ corner + c2w[:3, 3])[None], cams, 0.02)[0]
+
+
+def test_completion_respects_observed_free_space():
+    # A dome on a glass table: seen from above and from below (through the glass), so the space
+    # under the dome is observed free. The sphere fit's lower half must be carved away.
+    ball = trimesh.creation.icosphere(5, radius=0.05)
+    dome = from_manifold(to_manifold(ball).trim_by_plane((0, 0, 1), 0.0))
+    pts = seen_side(dome, [0.3, 0.2, 1.0])
+    below = _camera(np.array([0, 0, -0.4]), [0, 0, 0])
+    cams = [below]
+    depths = [_depth(dome, below)]
+    bare = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "sphere"})
+    assert bare.mesh.bounds[0, 2] < -0.04
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "sphere",
+                          "cameras": cams, "depths": depths})
+    # Below the free-space margin (2 voxels) almost nothing of the fitted ball may remain.
+    def below_margin(m):
+        return to_manifold(m).trim_by_plane((0, 0, -1), 2 * VOXEL).volume()
+    assert below_margin(bare.mesh) > 1e-4
+    assert below_margin(res.mesh) < 0.03 * below_margin(bare.mesh)
+    assert res.free_space_fraction <= 0.01
+    assert chamfer(res.mesh, dome) < 0.004
+
+
+def test_plugin_output_is_aligned_and_post_processed():
+    gt = trimesh.creation.icosphere(4, radius=0.04)
+    gt.apply_translation([0.2, 0.1, 0.04])
+    pts = seen_side(gt, [1, 0, 0.3])
+    calls = []
+
+    def model(points, images, label):
+        calls.append((points.shape, label))
+        m = trimesh.creation.icosphere(4, radius=1.0)          # right shape, wrong scale and place
+        m.apply_translation([5, 5, 5])
+        return m
+
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": model, "label": "ball",
+                          "support_planes": TABLE})
+    assert calls == [(pts.shape, "ball")]
+    assert res.method == "plugin", res.reason
+    assert chamfer(res.mesh, gt) < 0.003
+
+    def broken(points, images, label):
+        raise ValueError("no GPU")
+
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": broken, "support_planes": TABLE})
+    assert res.method == "sphere" and "no GPU" in res.candidates["plugin"]["why"]
