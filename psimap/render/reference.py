@@ -40,28 +40,34 @@ def blend_tiles(px: torch.Tensor, py: torch.Tensor, T: torch.Tensor, center: tor
     Returns rgb [B, P, 3], alpha [B, P], depth_num [B, P], median [B, P], normal [B, P, 3],
     distortion [B, P], features [B, P, C].
     """
+    B, P = px.shape
+    L = T.shape[1]
     x = px[:, :, None]
     y = py[:, :, None]
-
-    def row(i, j):                      # T[:, slot, i, j] broadcast over pixels -> [B, 1, L]
-        return T[:, None, :, i, j]
+    T0, T1, T2 = T[:, :, 0, :], T[:, :, 1, :], T[:, :, 2, :]            # rows, [B, L, 3]
 
     # Homogeneous ray-splat intersection: the planes x T2 - T0 and y T2 - T1 meet the splat plane
-    # along the pixel ray; their cross product is the hit point (u, v, 1) up to scale.
-    hx0, hx1, hx2 = x * row(2, 0) - row(0, 0), x * row(2, 1) - row(0, 1), x * row(2, 2) - row(0, 2)
-    hy0, hy1, hy2 = y * row(2, 0) - row(1, 0), y * row(2, 1) - row(1, 1), y * row(2, 2) - row(1, 2)
-    p0 = hx1 * hy2 - hx2 * hy1
-    p1 = hx2 * hy0 - hx0 * hy2
-    p2 = hx0 * hy1 - hx1 * hy0
-    hx_sq = hx0 * hx0 + hx1 * hx1 + hx2 * hx2
-    hy_sq = hy0 * hy0 + hy1 * hy1 + hy2 * hy2
+    # along the pixel ray, and their cross product p is the hit (u, v, 1) up to scale. p is
+    # bilinear in (x, y): p = x (T1 x T2) + y (T2 x T0) + T0 x T1, so one batched matmul gives it.
+    ones = torch.ones_like(px)
+    xy1 = torch.stack([px, py, ones], dim=-1)                               # [B, P, 3]
+    coef = torch.stack([torch.linalg.cross(T1, T2), torch.linalg.cross(T2, T0), torch.linalg.cross(T0, T1)],
+                       dim=1)                                               # [B, 3 (x, y, 1), L, 3 (k)]
+    p = torch.bmm(xy1, coef.transpose(2, 3).reshape(B, 3, 3 * L)).view(B, P, 3, L)
+    p0, p1, p2 = p[:, :, 0], p[:, :, 1], p[:, :, 2]                         # [B, P, L]
+    # |hx|^2 = x^2 |T2|^2 - 2 x T0.T2 + |T0|^2 (and the same for y); only used in the edge-on test.
+    t22 = (T2 * T2).sum(-1)
+    hcoef = torch.stack([torch.stack([t22, -2 * (T0 * T2).sum(-1), (T0 * T0).sum(-1)], 1),
+                         torch.stack([t22, -2 * (T1 * T2).sum(-1), (T1 * T1).sum(-1)], 1)], 1)   # [B, 2, 3, L]
+    hx_sq = torch.bmm(torch.stack([px * px, px, ones], -1), hcoef[:, 0])    # [B, P, L]
+    hy_sq = torch.bmm(torch.stack([py * py, py, ones], -1), hcoef[:, 1])
     # |p2| > eps |hx||hy| (squared: no sqrt, no gradient singularity); else edge-on.
     hit = (p2 * p2) > (EDGE_ON_EPS ** 2) * hx_sq * hy_sq
     p2s = torch.where(hit, p2, torch.ones_like(p2))
     u = torch.where(hit, p0 / p2s, torch.zeros_like(p0))
     v = torch.where(hit, p1 / p2s, torch.zeros_like(p1))
     rho3 = u * u + v * v
-    z3 = row(2, 0) * u + row(2, 1) * v + row(2, 2)
+    z3 = T[:, None, :, 2, 0] * u + T[:, None, :, 2, 1] * v + T[:, None, :, 2, 2]
     valid3 = hit & (rho3 <= CHI * CHI) & (z3 > near)
     g3 = torch.where(valid3, torch.exp(-0.5 * rho3), torch.zeros_like(rho3))
 
@@ -90,7 +96,6 @@ def blend_tiles(px: torch.Tensor, py: torch.Tensor, T: torch.Tensor, center: tor
     normal = torch.einsum("bpl,blc->bpc", w, normal_c)
 
     # Median: the last blended surfel whose transmittance before it is still above 0.5.
-    L = w.shape[-1]
     before_half = blended & (trans_excl > 0.5)
     slot = torch.arange(1, L + 1, device=w.device)
     last = (before_half * slot).amax(-1) if L else torch.zeros(w.shape[:2], dtype=torch.long, device=w.device)
