@@ -215,7 +215,7 @@ def test_completion_respects_observed_free_space():
     assert below_margin(res.mesh) < 0.03 * below_margin(bare.mesh)
     assert res.free_space_fraction <= 0.01
     # The 2-voxel free-space margin leaves a 1 cm slab under the dome: within 5 mm on average.
-    assert chamfer(res.mesh, dome) < 0.005 < 0.01 < chamfer(bare.mesh, dome)
+    assert chamfer(res.mesh, dome) < 0.005 < 0.008 < chamfer(bare.mesh, dome)
 
 
 def test_plugin_output_is_aligned_and_post_processed():
