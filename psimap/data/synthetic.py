@@ -129,6 +129,8 @@ def _place_furniture(kind: str, lay: Layout, rng: np.random.Generator, iid: int)
             along = lay.half_y if side < 2 else lay.half_x
             shape = builder(rng, max_half=min(0.6, along - 0.3))
             hx, hy = shape.half
+            if 2 * hy > WALL_BAND:  # would reach into the camera orbit's clearance
+                continue
             t = rng.uniform(-along + hx, along - hx)
             # Yaw turns the local front (+y) towards the room; the back touches the wall exactly.
             yaw_deg, xy = [(90.0, (lay.half_x - hy, t)), (-90.0, (-lay.half_x + hy, t)),
@@ -279,6 +281,8 @@ def _drop_interpenetrating(lay: Layout, tol_volume: float = 1e-7) -> None:
     keep: list[Placed] = []
     boxes = []
     for p in lay.objects:
+        if p.support and p.support not in {q.instance_id for q in keep}:
+            continue  # its support was dropped: it would float
         bb = np.asarray(p.solid.bounding_box()).reshape(2, 3)
         clash = False
         for q, qb in zip(keep, boxes):
