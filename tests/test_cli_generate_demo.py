@@ -50,6 +50,10 @@ def test_demo_runs(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "generate" in text and "psimap demo: done" in text
     assert len(load(out / "scene")) == 4
+    from PIL import Image
+
+    img = Image.open(out / "scene_preview.png")
+    assert img.size[0] > 500 and np.asarray(img).std() > 10
     # An existing file where the folder should go is a clean error.
     f = tmp_path / "file"
     f.write_text("x")
