@@ -28,10 +28,13 @@ says what it did: `CompletionResult.method` names the method and `reason` says w
 
 Methods (one module each), tried in tiers of increasing generality; the first tier with a candidate
 whose fit passes (>= 90 % of observed points within the tolerance of its surface, after free-space
-carving and collision removal) wins, the lowest residual inside a tier:
-plugin -> primitives (sphere / cylinder / box, `primitives.py`) -> rotational symmetry
+carving and collision removal) wins; inside a tier the lowest residual wins, weighted by
+complexity (primitives 1.0, revolution 1.25):
+plugin -> primitives (sphere / cylinder / box, `primitives.py`) and rotational symmetry
 (`symmetry.py`) -> watertight Poisson closing of the shell (`closing.py`, only when most
 directions were seen) -> support-aware closing (`support.py`, always available as the fallback).
+Parts of the observation a fitted shape leaves outside (a mug's handle) are added back as convex
+pieces.
 Constraints (`constraints.py`) and free space (`freespace.py`) apply to every result.
 """
 from __future__ import annotations
@@ -48,6 +51,10 @@ from psimap import PsimapError
 MIN_POINTS = 50               # fewer observed points do not constrain any shape
 ACCEPT_INLIERS = 0.9          # share of observed points within tolerance of a candidate surface
 FREE_CARVE = 0.01             # carve a candidate when more than this share of it is known-free
+# Residual weights inside a tier: a simpler shape wins unless clearly worse (a bottle fits a
+# cylinder, but a surface of revolution better).
+_COMPLEXITY = {"plugin": 0.8, "sphere": 1.0, "cylinder": 1.0, "box": 1.0, "revolution": 1.25,
+               "closing": 1.5, "support": 1.5}
 METHODS = ("plugin", "sphere", "cylinder", "box", "revolution", "closing", "support")
 
 
@@ -167,8 +174,8 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
             yield [("plugin", _plugin)]
         yield [("sphere", lambda: primitives.fit_sphere(points, tol)),
                ("cylinder", lambda: primitives.fit_cylinder(points, tol, support)),
-               ("box", lambda: primitives.fit_box(points, tol, support, blocking))]
-        yield [("revolution", lambda: symmetry.fit_revolution(points, tol, support))]
+               ("box", lambda: primitives.fit_box(points, tol, support, blocking)),
+               ("revolution", lambda: symmetry.fit_revolution(points, tol, support))]
         if coverage >= 0.6 or forced == "closing":
             yield [("closing", lambda: closing.poisson_closing(
                 points, closing.oriented_normals(points, partial, spacing or tol), tol))]
@@ -214,7 +221,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                                 "why": "" if ok else f"only {inl:.0%} of points within {tol * 1000:.1f} mm"}
             if name == "support":
                 fallback = (name, mesh, rms, inl)
-            if ok and (best is None or rms < best[2]):
+            if ok and (best is None or rms * _COMPLEXITY[name] < best[2] * _COMPLEXITY[best[0]]):
                 best = (name, mesh, rms, inl)
         if best is not None:
             chosen = best

@@ -36,11 +36,14 @@ def point_spacing(points: np.ndarray) -> float:
 
 
 def directional_coverage(points: np.ndarray) -> float:
-    """Share of directions from the bounding-box centre of points [P, 3] that hold observed points."""
+    """Share of directions from the bounding-box centre of points [P, 3] (axes scaled to the box)
+    that hold observed points."""
     if len(points) < 4:
         return 0.0
     centre = 0.5 * (points.min(0) + points.max(0))
-    rel = points - centre
+    # In the box-normalised frame a thin object's hidden back face still owns half the directions.
+    half = np.maximum(0.5 * (points.max(0) - points.min(0)), 1e-9)
+    rel = (points - centre) / half
     norm = np.linalg.norm(rel, axis=1)
     rel = rel[norm > 1e-9] / norm[norm > 1e-9, None]
     if len(rel) == 0:

@@ -104,7 +104,10 @@ def fit_cylinder(points: np.ndarray, tolerance: float, support=None):
         if circ is None:
             continue
         c2, r = _robust_circle(local[:, :2], circ, tolerance)
-        if r > 5 * np.ptp(local[:, :2], axis=0).max():
+        rel = local[:, :2] - c2
+        arc = 10.0 * np.unique(np.floor(np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) / 10.0)).size
+        # A flat face is a circle of huge radius: demand a real arc (>= 90 deg, r <= 0.75 extent).
+        if r > 0.75 * np.ptp(local[:, :2], axis=0).max() or arc < 90.0:
             continue
         res = np.median(np.abs(np.linalg.norm(local[:, :2] - c2, axis=1) - r))
         if res < best_res:
