@@ -33,7 +33,7 @@ def get_num_threads() -> int:
 
 def _empty(shape, dtype=np.float32) -> np.ndarray:
     if POISON_OUTPUTS:
-        return np.full(shape, np.nan if dtype == np.float32 else -1, dtype=dtype)
+        return np.full(shape, -1 if np.issubdtype(dtype, np.integer) else np.nan, dtype=dtype)
     return np.empty(shape, dtype=dtype)
 
 
@@ -74,7 +74,7 @@ class _RasterizeNative(torch.autograd.Function):
         rgb, alpha, depth = _empty((H, W, 3)), _empty((H, W)), _empty((H, W))
         median, normal, dist = _empty((H, W)), _empty((H, W, 3)), _empty((H, W))
         feat = _empty((H, W, C))
-        t_final, dist_sums = _empty((H, W)), _empty((H, W, 3))
+        t_final, dist_sums = _empty((H, W)), _empty((H, W, 3), np.float64)
         n_last, median_pos = _empty((H, W), np.int32), _empty((H, W), np.int32)
         topk_pos = _empty((H, W, K), np.int32)
         plan.evaluated = int(_native.rasterize_forward(

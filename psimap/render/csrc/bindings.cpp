@@ -87,7 +87,7 @@ ForwardBuffers make_buffers(const Common& c, Array<float>& rgb, Array<float>& al
                             Array<float>& depth, Array<float>& median, Array<float>& normal,
                             Array<float>& distortion, Array<float>& feature, Array<float>& t_final,
                             Array<int32_t>& n_last, Array<int32_t>& median_pos,
-                            Array<float>& dist_sums, Array<int32_t>& topk_pos) {
+                            Array<double>& dist_sums, Array<int32_t>& topk_pos) {
     const size_t px = static_cast<size_t>(c.cfg.width) * c.cfg.height;
     ForwardBuffers b;
     b.rgb = checked(rgb, 3 * px, "rgb");
@@ -143,7 +143,7 @@ NB_MODULE(_native, m) {
            Array<const float> background, Array<float> out_rgb, Array<float> out_alpha,
            Array<float> out_depth, Array<float> out_median, Array<float> out_normal,
            Array<float> out_distortion, Array<float> out_feature, Array<float> t_final,
-           Array<int32_t> n_last, Array<int32_t> median_pos, Array<float> dist_sums,
+           Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
            Array<int32_t> topk_pos) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
                                    offsets, ids, width, height, topk, near, far, background);
@@ -162,7 +162,7 @@ NB_MODULE(_native, m) {
            Array<const float> feature, int channels, Array<const int32_t> offsets,
            Array<const int32_t> ids, int width, int height, int topk, float near, float far,
            Array<const float> background, Array<float> depth, Array<float> t_final,
-           Array<int32_t> n_last, Array<int32_t> median_pos, Array<float> dist_sums,
+           Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
            Array<int32_t> topk_pos, Array<const float> g_rgb, Array<const float> g_alpha,
            Array<const float> g_depth, Array<const float> g_median, Array<const float> g_normal,
            Array<const float> g_distortion, Array<const float> g_feature, Array<float> gT,

@@ -49,7 +49,8 @@ struct ForwardBuffers {
     float* t_final;      // [H, W] final transmittance
     int32_t* n_last;     // [H, W] tile-list position after the last blended surfel
     int32_t* median_pos; // [H, W] tile-list position of the median surfel, -1 if none
-    float* dist_sums;    // [H, W, 3] sum w, sum w m, sum w m^2 (distortion totals)
+    double* dist_sums;   // [H, W, 3] sum w, sum w m, sum w m^2 (distortion totals, double: the
+                         // distortion is a small difference of O(1) moments)
     int32_t* topk_pos;   // [H, W, K] selected tile-list positions, -1 padded (K = topk > 0)
 };
 

@@ -57,8 +57,8 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
                     const float x = static_cast<float>(px), y = static_cast<float>(py);
                     const float T_final = saved.t_final[pix];
                     const float alpha_out = 1.0f - T_final;
-                    const float A = saved.dist_sums[3 * pix], D = saved.dist_sums[3 * pix + 1],
-                                D2 = saved.dist_sums[3 * pix + 2];
+                    const double A = saved.dist_sums[3 * pix], D = saved.dist_sums[3 * pix + 1],
+                                 D2 = saved.dist_sums[3 * pix + 2];
                     const float* g_rgb = g.rgb + 3 * pix;
                     const float* g_nrm = g.normal + 3 * pix;
                     const float* g_f = g.feature + pix * C;
@@ -93,12 +93,13 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
                             selected = true;
                             --sel_k;
                         }
-                        const float m = ndc_depth(h.d, near, far);
+                        // dDist/dw_i = sum_j w_j (m_i - m_j)^2, dDist/dm_i = 2 w_i (m_i A - D).
+                        const double m = ndc_depth_d(h.d, near, far);
                         float g_w = g_rgb[0] * s.color[0] + g_rgb[1] * s.color[1] +
                                     g_rgb[2] * s.color[2] + g_num * h.d +
                                     g_nrm[0] * s.normal[0] + g_nrm[1] * s.normal[1] +
                                     g_nrm[2] * s.normal[2] +
-                                    g_dist * (m * m * A - 2.0f * m * D + D2);
+                                    static_cast<float>(g_dist * (m * m * A - 2.0 * m * D + D2));
                         float* tg = tile_geo.data() + static_cast<size_t>(j) * kGSlots;
                         if (selected && C > 0) {
                             const float* f = in.feature + static_cast<int64_t>(ids[j]) * C;
@@ -110,8 +111,9 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
                             }
                             g_w += dot;
                         }
-                        const float dm_dd = far * near / ((far - near) * h.d * h.d);
-                        float g_d = g_num * w + g_dist * 2.0f * w * (m * A - D) * dm_dd;
+                        const double dm_dd = static_cast<double>(far) * near / ((static_cast<double>(far) - near) * h.d * h.d);
+                        float g_d = g_num * w +
+                                    static_cast<float>(g_dist * 2.0 * w * (m * A - D) * dm_dd);
                         if (j == med_pos) g_d += g_med;
                         const float g_alpha = T * g_w - S / one_minus;
                         S += g_w * w;

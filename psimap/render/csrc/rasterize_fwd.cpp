@@ -32,8 +32,8 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                     const float x = static_cast<float>(px), y = static_cast<float>(py);
                     float T_acc = 1.0f;
                     float rgb[3] = {0.0f, 0.0f, 0.0f}, nrm[3] = {0.0f, 0.0f, 0.0f};
-                    float depth_num = 0.0f, median = 0.0f, dist = 0.0f;
-                    float A = 0.0f, D = 0.0f, D2 = 0.0f;
+                    float depth_num = 0.0f, median = 0.0f;
+                    double dist = 0.0, A = 0.0, D = 0.0, D2 = 0.0;
                     int median_pos = -1, last = 0;
                     float top_w[kMaxTopK];
                     int top_pos[kMaxTopK];
@@ -61,8 +61,8 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                             median = h.d;
                             median_pos = j;
                         }
-                        const float m = ndc_depth(h.d, near, far);
-                        dist += w * (m * m * A + D2 - 2.0f * m * D);
+                        const double m = ndc_depth_d(h.d, near, far);
+                        dist += w * (m * m * A + D2 - 2.0 * m * D);
                         A += w;
                         D += w * m;
                         D2 += w * m * m;
@@ -84,7 +84,7 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                     out.alpha[pix] = alpha_out;
                     out.depth[pix] = alpha_out > kAlphaOutMin ? depth_num / alpha_out : 0.0f;
                     out.median[pix] = median;
-                    out.distortion[pix] = dist;
+                    out.distortion[pix] = static_cast<float>(dist);
                     out.t_final[pix] = T_acc;
                     out.n_last[pix] = last;
                     out.median_pos[pix] = median_pos;

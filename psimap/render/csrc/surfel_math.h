@@ -18,7 +18,7 @@ constexpr float kChi2 = 9.0f;                  // 3-sigma disk: u^2 + v^2 <= 9
 constexpr float kAlphaMin = 1.0f / 255.0f;
 constexpr float kAlphaMax = 0.99f;
 constexpr float kTransmitMin = 1e-4f;
-constexpr float kEdgeOnEps = 1e-10f;
+constexpr float kEdgeOnEps2 = 1e-20f;  // (1e-10)^2
 constexpr float kLowPass2 = 5.541263545158426f;  // R_LP^2 = ln 255
 constexpr float kAlphaOutMin = 1e-6f;
 
@@ -48,8 +48,9 @@ PSIMAP_HD float half_rho_cut(float opacity) {
     return logf(255.0f * opacity) * (1.0f + 1e-5f) + 1e-5f;
 }
 
-PSIMAP_HD float ndc_depth(float d, float near, float far) {
-    return far * (d - near) / ((far - near) * d);
+PSIMAP_HD double ndc_depth_d(float d, float near, float far) {
+    return static_cast<double>(far) * (static_cast<double>(d) - near) /
+           ((static_cast<double>(far) - near) * d);
 }
 
 // Kernel value and hit depth of surfel `s` at pixel coordinate (x, y).
@@ -67,11 +68,12 @@ PSIMAP_HD void eval_surfel(const SurfelParams& s, float x, float y, float near, 
     const float p0 = hx1 * hy2 - hx2 * hy1;
     const float p1 = hx2 * hy0 - hx0 * hy2;
     const float p2 = hx0 * hy1 - hx1 * hy0;
-    const float nx = sqrtf(hx0 * hx0 + hx1 * hx1 + hx2 * hx2);
-    const float ny = sqrtf(hy0 * hy0 + hy1 * hy1 + hy2 * hy2);
+    const float hx_sq = hx0 * hx0 + hx1 * hx1 + hx2 * hx2;
+    const float hy_sq = hy0 * hy0 + hy1 * hy1 + hy2 * hy2;
     bool valid3 = false;
     float rho3 = 0.0f, u = 0.0f, v = 0.0f, z3 = 0.0f;
-    if (fabsf(p2) > kEdgeOnEps * (nx * ny)) {
+    // |p2| > eps |hx| |hy|, squared (as the reference does), else the surfel is edge-on.
+    if (p2 * p2 > kEdgeOnEps2 * hx_sq * hy_sq) {
         u = p0 / p2;
         v = p1 / p2;
         rho3 = u * u + v * v;

@@ -1,0 +1,348 @@
+"""The native C++ rasterizer (psimap/render/csrc, psimap/render/native.py) against the torch reference.
+
+Oracle: the reference renderer in float64 on the same (float32-representable) inputs; the native
+kernels compute in float32. Fresh random scenes every run (the seed is in every failure message).
+
+Tolerances (documented band, as gsplat does for its CUDA/torch parity tests):
+- forward outputs: |native - ref| <= 1e-5 |ref| + 1e-5 * max|ref| (relative, with an absolute floor
+  at 1e-5 of the output's scale: float32 sums of O(1) terms cannot resolve less);
+- gradients: |native - ref| <= 1e-4 |ref| + 1e-4 * rms(ref) per element.
+- Pixels where any surfel's evaluation sits within BAND (relative) of a cutoff are excluded (their
+  output is not compared and their upstream gradient is zeroed before backward): rho3 ~ chi^2,
+  rho2 ~ R_LP^2, z3 ~ near, G3 ~ G2 (branch tie), o G ~ 1/255 or ~ 0.99 (clamp), transmittance after
+  a surfel ~ 1e-4 (stop) or before it ~ 0.5 (median switch), the K-th / (K+1)-th weights tied, or a
+  nearly edge-on ray (|p2| < 1e-5 |h_x||h_y|). A float32 rounding may flip such a discrete decision,
+  so the two backends legitimately differ there. The tests assert that the band stays small.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import pytest
+import torch
+
+import psimap.render.native as native
+from psimap.render import project_surfels, rasterize
+
+OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion", "features")
+W, H = 64, 48
+NEAR, FAR = 0.2, 1000.0
+BAND = 1e-4
+
+
+@pytest.fixture(autouse=True)
+def poison_outputs():
+    """Every native output buffer starts as NaN / -1, so any pixel or surfel left unwritten fails."""
+    native.POISON_OUTPUTS = True
+    threads = native.get_num_threads()
+    yield
+    native.POISON_OUTPUTS = False
+    native.set_num_threads(threads)
+
+
+def fresh_seed() -> int:
+    """A new seed every run; PSIMAP_TEST_SEED=<seed> replays a failure."""
+    if os.environ.get("PSIMAP_TEST_SEED"):
+        return int(os.environ["PSIMAP_TEST_SEED"])
+    return int.from_bytes(os.urandom(4), "little")
+
+
+def camera(f=55.0):
+    K = torch.tensor([[f, 0, W / 2 - 0.5], [0, f, H / 2 - 0.5], [0, 0, 1]], dtype=torch.float64)
+    return torch.eye(4, dtype=torch.float64), K
+
+
+def random_scene(n, seed, channels=6, opac=(0.05, 0.99), size=(0.02, 0.35), tilt=1.2):
+    """n surfels in front of the camera, some large and opaque (the 1e-4 stop fires), some faint."""
+    g = torch.Generator().manual_seed(seed)
+    r = lambda *s: torch.rand(*s, generator=g, dtype=torch.float64)  # noqa: E731
+    means = (r(n, 3) * 2 - 1) * torch.tensor([1.1, 0.8, 0.6], dtype=torch.float64)
+    means[:, 2] += 2.5
+    axes = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    axes = axes / axes.norm(dim=-1, keepdim=True)
+    ang = r(n, 1) * tilt
+    quats = torch.cat([torch.cos(ang / 2), axes * torch.sin(ang / 2)], -1)
+    scales = size[0] + (size[1] - size[0]) * r(n, 2)
+    opacities = opac[0] + (opac[1] - opac[0]) * r(n)
+    colors = r(n, 3)
+    feats = torch.randn(n, channels, generator=g, dtype=torch.float64)
+    # Round to float32 once: both backends then see exactly the same numbers.
+    return [t.float().double() for t in (means, quats, scales, opacities, colors, feats)]
+
+
+def boundary_pixels(scene, viewmat, K, topk, band=BAND, geometric=True) -> torch.Tensor:
+    """[H, W] bool: pixels where some surfel evaluation is within `band` of a cutoff (see top).
+    geometric=False: only the cutoffs that depend on exp() (alpha, transmittance, G3-vs-G2, Top-K),
+    for float32-vs-float32 comparisons where + - * / are bit-identical in both backends."""
+    m, q, s, o, c, f = scene
+    proj = project_surfels(m, q, s, o, viewmat, K, W, H, NEAR, FAR)
+    order = [int(i) for i in torch.argsort(proj.depth_key, stable=True) if proj.valid[i]]
+    flag = torch.zeros(H * W, dtype=torch.bool)
+    if not order:
+        return flag.reshape(H, W)
+    idx = torch.tensor(order)
+    T = proj.T[idx].detach()
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                            indexing="ij")
+    x, y = xs.reshape(-1, 1), ys.reshape(-1, 1)
+    hx = x[..., None] * T[None, :, 2, :] - T[None, :, 0, :]            # [P, N, 3]
+    hy = y[..., None] * T[None, :, 2, :] - T[None, :, 1, :]
+    p = torch.linalg.cross(hx, hy)
+    sin = p[..., 2].abs() / (hx.norm(dim=-1) * hy.norm(dim=-1))
+    hit = sin > 1e-10
+    p2 = torch.where(hit, p[..., 2], torch.ones_like(sin))
+    u, v = p[..., 0] / p2, p[..., 1] / p2
+    rho3 = u * u + v * v
+    z3 = T[None, :, 2, 0] * u + T[None, :, 2, 1] * v + T[None, :, 2, 2]
+    valid3 = hit & (rho3 <= 9) & (z3 > NEAR)
+    cen = proj.center[idx].detach()
+    rho2 = (x - cen[None, :, 0]) ** 2 + (y - cen[None, :, 1]) ** 2
+    lp = math.log(255.0)
+    valid2 = rho2 <= lp
+    g3 = torch.where(valid3, torch.exp(-0.5 * rho3), torch.zeros_like(rho3))
+    g2 = torch.where(valid2, torch.exp(-rho2), torch.zeros_like(rho2))
+    g = torch.maximum(g3, g2)
+    oG = o[idx].detach()[None] * g
+    alpha = oG.clamp(max=0.99)
+    near_cut = (valid3 & valid2 & ((g3 - g2).abs() <= band * g)
+                | ((oG - 1 / 255).abs() < band / 255)
+                | ((oG - 0.99).abs() < band))
+    if geometric:
+        near_cut |= ((sin < 1e-5) & (rho2 < 4 * lp)
+                     | hit & ((rho3 - 9).abs() < 9 * band) & (z3 > NEAR)
+                     | hit & (rho3 <= 9) & ((z3 - NEAR).abs() < band * NEAR)
+                     | ((rho2 - lp).abs() < band * lp))
+    keep = alpha >= 1 / 255
+    a = torch.where(keep, alpha, torch.zeros_like(alpha))
+    t_incl = torch.cumprod(1 - a, -1)
+    t_excl = torch.cat([torch.ones_like(t_incl[:, :1]), t_incl[:, :-1]], -1)
+    reached = t_excl >= 1e-4 * (1 - band)
+    near_cut |= keep & ((t_incl - 1e-4).abs() < band * 1e-4)
+    blended = keep & (t_incl >= 1e-4)
+    near_cut |= blended & ((t_excl - 0.5).abs() < band)
+    flag = (near_cut & reached).any(-1)
+    if topk is not None and f.shape[1]:
+        w = torch.where(blended, a * t_excl, torch.zeros_like(a))
+        ws = torch.sort(w, -1, descending=True).values
+        if ws.shape[1] > topk:
+            kth, nxt = ws[:, topk - 1], ws[:, topk]
+            flag |= (nxt > 0) & ((kth - nxt) <= band * kth)
+    return flag.reshape(H, W)
+
+
+def render_pair(scene, viewmat, K, topk, tiles="precise", background=None, weights_seed=0, mask=None,
+                ref_dtype=torch.float64):
+    """Render with both backends; loss = sum of random weights * every output (zeroed on `mask`).
+    Returns {backend: (RenderOutput, grads wrt means, quats, scales, opacities, colors, features)}."""
+    res = {}
+    for backend, dtype in (("reference", ref_dtype), ("native", torch.float32)):
+        leaves = [t.to(dtype).clone().requires_grad_(True) for t in scene]
+        bg = None if background is None else background.to(dtype)
+        out = rasterize(*leaves[:5], viewmat.to(dtype), K.to(dtype), W, H, features=leaves[5], topk=topk,
+                        tiles=tiles, backend=backend, near=NEAR, far=FAR, background=bg)
+        g = torch.Generator().manual_seed(weights_seed)
+        loss = 0
+        for k in OUTPUTS:
+            o = getattr(out, k)
+            wgt = torch.randn(o.shape, generator=g, dtype=torch.float64)
+            if mask is not None:
+                wgt[mask] = 0
+            loss = loss + (o * wgt.to(dtype)).sum()
+        grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+        grads = [torch.zeros_like(x) if gr is None else gr for gr, x in zip(grads, leaves)]
+        res[backend] = (out, [gr.double() for gr in grads])
+    return res
+
+
+def assert_forward_close(ref, nat, keep, msg):
+    # The one-pass distortion is a difference of O(1) NDC-depth moments: a float32 reference
+    # resolves it only to a few ulps of 1 (native accumulates it in double).
+    dist_floor = 5e-7 if ref.distortion.dtype == torch.float32 else 0.0
+    for k in OUTPUTS:
+        a, b = getattr(ref, k).detach(), getattr(nat, k).detach().double()
+        assert b.shape == a.shape, (k, msg)
+        assert bool(torch.isfinite(b).all()), f"{k}: non-finite / unwritten pixels ({msg})"
+        if a.numel() == 0:
+            continue
+        m = keep if a.dim() == 2 else keep[..., None].expand_as(a)
+        a, b = a[m], b[m]
+        scale = float(a.abs().max()) if a.numel() else 0.0
+        tol = 1e-5 * a.abs() + 1e-5 * scale + (dist_floor if k == "distortion" else 0.0)
+        bad = (a - b).abs() > tol
+        assert not bool(bad.any()), (f"{k}: {int(bad.sum())} values differ, max |diff| "
+                                     f"{float((a - b).abs().max()):.3g} (scale {scale:.3g}; {msg})")
+
+
+def assert_grads_close(gref, gnat, msg):
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "features"), gref, gnat):
+        assert bool(torch.isfinite(b).all()), f"grad {name} not finite ({msg})"
+        if a.numel() == 0:
+            continue
+        rms = float(a.pow(2).mean().sqrt())
+        tol = 1e-4 * a.abs() + 1e-4 * rms
+        bad = (a - b).abs() > tol
+        assert not bool(bad.any()), (f"grad {name}: {int(bad.sum())}/{a.numel()} differ, max |diff| "
+                                     f"{float((a - b).abs().max()):.3g}, rms {rms:.3g} ({msg})")
+
+
+# ---------------------------------------------------------------- parity on fresh random scenes
+
+@pytest.mark.parametrize("topk,tiles", [(None, "precise"), (3, "precise"), (2, "circle")])
+def test_native_matches_reference_on_random_scene(topk, tiles):
+    seed = fresh_seed()
+    viewmat, K = camera()
+    scene = random_scene(150, seed)
+    band = boundary_pixels(scene, viewmat, K, topk)
+    msg = f"seed={seed}, topk={topk}, tiles={tiles}, banded pixels={int(band.sum())}"
+    assert int(band.sum()) < 0.05 * H * W, msg            # the excluded band stays small
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    res = render_pair(scene, viewmat, K, topk, tiles, background=bg, weights_seed=seed, mask=band)
+    (ref, gref), (nat, gnat) = res["reference"], res["native"]
+    assert nat.stats["backend"] == "native"
+    assert float(ref.alpha.max()) > 0.999                  # the 1e-4 stop is exercised
+    for k in ("tile_pairs", "pairs_per_tile", "max_pairs_per_tile", "culled"):
+        assert nat.stats[k] == ref.stats[k], (k, msg)
+    # Native counts the evaluations it performs (pixels stop early), the reference every pair.
+    assert 0 < nat.stats["evaluated"] <= ref.stats["evaluated"], msg
+    assert_forward_close(ref, nat, ~band, msg)
+    assert_grads_close(gref, gnat, msg)
+    # Gradients really flow into the geometry (not a vacuous comparison).
+    for name, gr in zip(("means", "quats", "scales", "opacities"), gnat[:4]):
+        assert float(gr.abs().max()) > 1e-3, (name, msg)
+
+
+def test_feature_gradient_and_selection_through_topk():
+    """Top-K features: the gradient reaches an unselected front surfel's opacity through T."""
+    viewmat, K = camera()
+    m = torch.tensor([[0, 0, 2.0], [0, 0, 3.0]], dtype=torch.float64)
+    q = torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64)
+    s = torch.full((2, 2), 0.3, dtype=torch.float64)
+    o = torch.tensor([0.3, 0.9], dtype=torch.float32, requires_grad=True)
+    c = torch.rand(2, 3, dtype=torch.float32)
+    f = torch.tensor([[1.0], [2.0]], dtype=torch.float32)
+    out = rasterize(m.float(), q.float(), s.float(), o, c, viewmat.float(), K.float(), W, H, features=f,
+                    topk=1, backend="native")
+    y, x = 24, 32
+    # Pixel (32, 24) is 0.5 px off the principal point: G = exp(-rho/2), rho = (0.5 z / f / s)^2 * 2.
+    g_front = math.exp(-0.5 * 2 * (0.5 * 2.0 / 55.0 / 0.3) ** 2)
+    g_back = math.exp(-0.5 * 2 * (0.5 * 3.0 / 55.0 / 0.3) ** 2)
+    w_back = (1 - 0.3 * g_front) * 0.9 * g_back
+    assert out.features[y, x, 0].item() == pytest.approx(2 * w_back, rel=1e-5)
+    (g,) = torch.autograd.grad(out.features[y, x, 0], o)
+    assert g[0].item() == pytest.approx(-g_front * 0.9 * g_back * 2, rel=1e-5)
+    assert g[1].item() == pytest.approx((1 - 0.3 * g_front) * g_back * 2, rel=1e-5)
+
+
+# ---------------------------------------------------------------- hard cases
+
+def hard_scene(name):
+    ang = math.pi / 2
+    edge_on = [math.cos(ang / 2), 0.0, math.sin(ang / 2), 0.0]
+    cases = {
+        "edge_on": dict(means=[[0, 0, 2.0], [0.2, 0.1, 2.5]], quats=[edge_on, edge_on]),
+        "tiny_scale": dict(means=[[0, 0, 2.0], [0.1, 0, 2.0]], scales=[[1e-8, 1e-8], [1e-8, 0.2]]),
+        "huge_scale": dict(means=[[0, 0, 2.0], [0.1, 0, 3.0]], scales=[[1e3, 1e3], [1e3, 0.1]]),
+        "opacity_0_and_1": dict(means=[[0, 0, 2.0], [0.1, 0, 2.5], [0, 0.1, 3.0]], opacities=[0.0, 1.0, 1.0]),
+        "coincident": dict(means=[[0, 0, 2.0]] * 4),
+        "near_plane": dict(means=[[0, 0, 0.2], [0, 0, 0.2000001], [0.1, 0, 0.25], [0, 0, 0.21]],
+                           scales=[[0.3, 0.3], [0.3, 0.3], [0.5, 0.5], [0.01, 0.01]]),
+        "all_culled": dict(means=[[0, 0, -1.0], [0, 0, 0.1], [0, 0, 2000.0], [50.0, 0, 2.0]]),
+        "empty": dict(means=torch.zeros(0, 3)),
+    }
+    case = cases[name]
+    m = torch.as_tensor(case["means"], dtype=torch.float64).reshape(-1, 3)
+    n = m.shape[0]
+    q = torch.as_tensor(case.get("quats", [[1.0, 0, 0, 0]] * n), dtype=torch.float64).reshape(n, 4)
+    s = torch.as_tensor(case.get("scales", [[0.3, 0.3]] * n), dtype=torch.float64).reshape(n, 2)
+    o = torch.as_tensor(case.get("opacities", [0.8] * n), dtype=torch.float64).reshape(n)
+    g = torch.Generator().manual_seed(7)
+    c = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    f = torch.randn(n, 5, generator=g, dtype=torch.float64)
+    return [t.float().double() for t in (m, q, s, o, c, f)]
+
+
+@pytest.mark.parametrize("name", ["edge_on", "tiny_scale", "huge_scale", "opacity_0_and_1", "coincident",
+                                  "near_plane", "all_culled", "empty"])
+def test_hard_cases_match_reference(name):
+    viewmat, K = camera()
+    scene = hard_scene(name)
+    band = boundary_pixels(scene, viewmat, K, 2, geometric=False)
+    # Reference in float32 too: degenerate stage-1 quantities (an edge-on normal's facing sign, a
+    # 1e-8 scale) depend on the precision of the shared projection, not on the kernels compared.
+    res = render_pair(scene, viewmat, K, 2, mask=band, ref_dtype=torch.float32)
+    (ref, gref), (nat, gnat) = res["reference"], res["native"]
+    msg = f"case={name}, banded pixels={int(band.sum())}"
+    assert_forward_close(ref, nat, ~band, msg)
+    assert_grads_close(gref, gnat, msg)
+    assert nat.stats["culled"] == ref.stats["culled"] and nat.stats["tile_pairs"] == ref.stats["tile_pairs"]
+    assert int(band.sum()) < 0.05 * H * W, msg
+    if name not in ("all_culled", "empty"):
+        assert float(nat.alpha[~band].max()) > 0.3, msg       # the comparison covers visible pixels
+
+
+# ---------------------------------------------------------------- threads, API, errors
+
+def test_one_and_two_threads_agree():
+    seed = fresh_seed()
+    viewmat, K = camera()
+    scene = random_scene(120, seed)
+    results = []
+    for threads in (1, 2):
+        native.set_num_threads(threads)
+        assert native.get_num_threads() == threads
+        leaves = [t.float().clone().requires_grad_(True) for t in scene]
+        out = rasterize(*leaves[:5], viewmat.float(), K.float(), W, H, features=leaves[5], topk=3,
+                        backend="native")
+        loss = sum((getattr(out, k) * (i + 1)).sum() for i, k in enumerate(OUTPUTS))
+        results.append((out, torch.autograd.grad(loss, leaves)))
+    (a, ga), (b, gb) = results
+    for k in OUTPUTS:    # the forward is per pixel: bit-identical whatever the schedule
+        assert torch.equal(getattr(a, k), getattr(b, k)), (k, seed)
+    for x, y in zip(ga, gb):   # per-thread gradient buffers: only the summation order differs
+        assert torch.allclose(x, y, rtol=1e-5, atol=1e-6 * float(x.abs().max())), seed
+
+
+def test_auto_backend_uses_native_on_cpu():
+    viewmat, K = camera()
+    scene = [t.float() for t in random_scene(20, 1)]
+    out = rasterize(*scene[:5], viewmat.float(), K.float(), W, H, backend="auto")
+    assert out.stats["backend"] == "native"
+
+
+def test_binning_is_sorted_front_to_back_with_index_ties():
+    from psimap.render import _native
+    import numpy as np
+
+    rng = np.random.default_rng(fresh_seed())
+    n, w, h = 300, 100, 70
+    x0 = rng.integers(-10, w, n)
+    y0 = rng.integers(-10, h, n)
+    boxes = np.stack([x0, y0, x0 + rng.integers(0, 40, n), y0 + rng.integers(0, 40, n)], 1).astype(np.int32)
+    depth = rng.choice(np.array([1.0, 2.0, 3.0], np.float32), n)     # many ties
+    valid = (rng.random(n) > 0.1).astype(np.uint8)
+    offsets, ids = _native.bin_tiles(boxes, valid, depth, w, h)
+    tx, ty = (w + 15) // 16, (h + 15) // 16
+    assert offsets.shape == (tx * ty + 1,) and offsets[-1] == ids.shape[0]
+    for t in range(tx * ty):
+        lst = ids[offsets[t]:offsets[t + 1]]
+        x, y = (t % tx) * 16, (t // tx) * 16
+        b = np.clip(boxes, 0, [w, h, w, h])
+        expect = [i for i in range(n) if valid[i] and b[i, 0] < min(x + 16, w) and b[i, 2] > x
+                  and b[i, 1] < min(y + 16, h) and b[i, 3] > y and b[i, 2] > b[i, 0] and b[i, 3] > b[i, 1]]
+        expect.sort(key=lambda i: (depth[i], i))
+        assert lst.tolist() == expect, t
+
+
+def test_bad_buffers_are_clear_errors():
+    from psimap.render import _native
+    import numpy as np
+
+    with pytest.raises(ValueError, match="boxes"):
+        _native.bin_tiles(np.zeros((3, 3), np.int32), np.ones(3, np.uint8), np.ones(3, np.float32), 16, 16)
+    # A dense scene: some tile holds more than MAX_TOPK surfels, so topk > MAX_TOPK cannot be dropped.
+    viewmat, K = camera()
+    big = [t.float() for t in random_scene(400, 3, size=(0.3, 0.4))]
+    proj = project_surfels(*big[:4], viewmat.float(), K.float(), W, H)
+    with pytest.raises(ValueError, match="topk"):
+        native.rasterize_native(proj, big[3], big[4], big[5], W, H, topk=native.MAX_TOPK + 1)
