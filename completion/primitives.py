@@ -32,7 +32,7 @@ def fit_sphere(points: np.ndarray, tolerance: float):
     if not (np.isfinite(r2) and r2 > 0):
         return None
     r = float(np.sqrt(r2))
-    if r > 10 * np.linalg.norm(points.max(0) - points.min(0)):   # a near-plane patch, not a ball
+    if r > 0.75 * np.ptp(points, axis=0).max():     # a gently curved patch, not a seen ball
         return None
     # Icosphere subdivision: edge ~ r * 1.1 / 2^s; sagitta ~ edge² / (8 r) <= tolerance / 20.
     sub = int(np.clip(np.ceil(np.log2(1.1 * r / np.sqrt(0.4 * r * tolerance + 1e-12))), 1, 5))
@@ -148,6 +148,12 @@ def fit_box(points: np.ndarray, tolerance: float, support=None, planes=()):
         R[:, 1] *= -1
     local = points @ R
     lo, hi = local.min(0), local.max(0)
+    # Bounds sit on the noise's outer edge: move each seen face to the median of its points.
+    for axis in range(3):
+        for bound in (lo, hi):
+            near = np.abs(local[:, axis] - bound[axis]) <= 2 * tolerance
+            if near.sum() >= 20:
+                bound[axis] = np.median(local[near, axis])
     if support is not None:
         s = _support_level(support, R[:, 2], R @ np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.0]))
         if s is not None and s < hi[2]:
