@@ -1,0 +1,189 @@
+"""3D-consistent 2D panoptic labels rendered from a scene's hard per-surfel labels (`psimap labels`).
+
+Each pixel takes the instance (and class) of the surfels that blend into it: the hard ids are
+rendered as one-hot feature channels (Top-K blending of the renderer) and the pixel label is the
+channel of largest blended weight. Because the ids live on the surfels, a pixel's id is the 3D
+instance id, the same in every frame. Pixels the surfels do not cover (alpha <= 0.5) stay void.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from psimap import PsimapError
+
+# One-hot channels rendered per pass: bounds the [H, W, C] feature image (and the per-surfel
+# one-hot) however many instances a scene holds.
+CHANNELS_PER_PASS = 64
+MIN_ALPHA = 0.5
+
+
+def instance_classes(scene) -> dict[int, int]:
+    """{instance id: class id} by majority vote of the instance's surfels' semantic ids (void ignored)."""
+    inst = scene.instance_ids().numpy().astype(np.int64)
+    sem = scene.semantic_ids().numpy().astype(np.int64)
+    sel = (inst > 0) & (sem > 0)
+    if not sel.any():
+        return {}
+    pairs, counts = np.unique(np.stack([inst[sel], sem[sel]], 1), axis=0, return_counts=True)
+    # Sort by (instance, count) so the last row of each instance is its majority class.
+    order = np.lexsort((counts, pairs[:, 0]))
+    pairs = pairs[order]
+    last = np.r_[pairs[1:, 0] != pairs[:-1, 0], True]
+    return {int(i): int(c) for i, c in pairs[last]}
+
+
+def _argmax_ids(scene, ids_per_surfel: np.ndarray, viewmat, K, width: int, height: int, topk, backend):
+    """Per pixel, the id whose one-hot channel has the largest blended weight, and alpha.
+
+    ids_per_surfel: [N] int64 -> (label [H, W] int64, alpha [H, W] float32). The id 0 (none) is a
+    channel too, so a stuff surface in front of an object hides it.
+    """
+    import torch
+
+    from psimap.render import rasterize
+
+    s = scene.surfels
+    values, inverse = np.unique(ids_per_surfel, return_inverse=True)
+    inverse = torch.as_tensor(inverse.reshape(-1), dtype=torch.long)
+    best = torch.full((height, width), -1.0)
+    label = torch.zeros((height, width), dtype=torch.long)
+    alpha = None
+    for start in range(0, len(values), CHANNELS_PER_PASS):
+        stop = min(len(values), start + CHANNELS_PER_PASS)
+        inside = (inverse >= start) & (inverse < stop)
+        # Surfels of other chunks still occlude (zero feature rows), so every pass renders all.
+        onehot = torch.zeros(len(inverse), stop - start)
+        onehot[inside, inverse[inside] - start] = 1.0
+        with torch.no_grad():
+            out = rasterize(s["means"].float(), s["quats"].float(), s["scales"].float(),
+                            s["opacities"].float(), s["colors"].float(), viewmat, K, width, height,
+                            features=onehot, topk=topk, backend=backend)
+        w, j = out.features.max(-1)
+        better = w > best
+        best = torch.where(better, w, best)
+        label = torch.where(better, j + start, label)
+        alpha = out.alpha
+    ids = torch.as_tensor(values, dtype=torch.long)[label]
+    return ids.numpy(), alpha.numpy()
+
+
+def render_labels(scene, K, c2w, width: int, height: int, topk: int | None = None,
+                  backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """(instance [H, W] int64, semantic [H, W] int64) of the scene seen by one camera.
+
+    K [3, 3], c2w [4, 4] OpenCV camera-to-world. Ids are the scene's hard labels
+    (`Scene.instance_ids()`, `Scene.semantic_ids()`); 0 where nothing covers the pixel
+    (alpha <= 0.5) or the covering surfels carry no label. topk: blend the one-hot labels over the
+    K largest weights per pixel (None = all).
+    """
+    import torch
+
+    width, height = int(width), int(height)
+    if width < 1 or height < 1:
+        raise PsimapError(f"render_labels: image size must be positive, got {width}x{height}")
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
+        raise PsimapError("render_labels: c2w must be a finite 4x4 camera-to-world matrix")
+    empty = np.zeros((height, width), dtype=np.int64)
+    if len(scene) == 0:
+        return empty, empty.copy()
+    viewmat = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
+    Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32)
+    inst_ids = scene.instance_ids().numpy().astype(np.int64)
+    sem_ids = scene.semantic_ids().numpy().astype(np.int64)
+    inst, alpha = _argmax_ids(scene, inst_ids, viewmat, Kt, width, height, topk, backend)
+    sem, _ = _argmax_ids(scene, sem_ids, viewmat, Kt, width, height, topk, backend)
+    covered = alpha > MIN_ALPHA
+    return np.where(covered, inst, 0), np.where(covered, sem, 0)
+
+
+def _views(scene, frames_or_data):
+    """[(stem, K, c2w, width, height)] from a frame list, a DATA folder, or None (the scene's cameras)."""
+    if frames_or_data is None:
+        names = list(scene.cameras["names"])
+        if not names:
+            raise PsimapError("the scene has no cameras: give frames or a DATA folder to render")
+        out = []
+        for i, name in enumerate(names):
+            K, c2w, w, h = scene.camera(i)
+            out.append((str(name) or f"frame_{i:05d}", K, c2w, w, h))
+        return out
+    if isinstance(frames_or_data, (str, os.PathLike)):
+        from psimap.data import load
+
+        path = Path(frames_or_data)
+        if not path.exists():
+            raise PsimapError(f"no such data folder: {path}")
+        frames_or_data = load(path)
+    views = []
+    for i in range(len(frames_or_data)):
+        f = frames_or_data[i]
+        views.append((f.name or f"frame_{i:05d}", np.asarray(f.K), np.asarray(f.c2w), f.width, f.height))
+    if not views:
+        raise PsimapError("no frames to render labels for")
+    stems = [v[0] for v in views]
+    if len(set(stems)) != len(stems):
+        dup = next(s for s in stems if stems.count(s) > 1)
+        raise PsimapError(f"two frames share the image stem {dup!r}: label files would collide")
+    return views
+
+
+def write_labels(scene, frames_or_data, out_dir, *, topk: int | None = None, backend: str = "auto",
+                 progress: bool = False) -> Path:
+    """Write 3D-consistent COCO panoptic labels of every view to `out_dir` (atomically).
+
+    frames_or_data: a list / sequence of Frame, a DATA folder (its cameras and image stems), or None
+    for the scene's own cameras. One PNG per view named after its image stem (segment id = 3D
+    instance id; stuff: STUFF_OFFSET + class id) and `panoptic.json` (categories from the scene's
+    class table; thing segments take their instance's class by majority vote). Returns the json path.
+    """
+    from tqdm import tqdm
+
+    from psimap.io_utils import atomic_dir
+    from psimap.panoptic.coco import write_coco_panoptic
+
+    if not scene.classes:
+        raise PsimapError("the scene has no class table: it carries no panoptic labels to render")
+    views = _views(scene, frames_or_data)
+    votes = instance_classes(scene)
+    out_dir = Path(out_dir)
+
+    def rendered():
+        for stem, K, c2w, w, h in tqdm(views, desc="labels", unit="frame", disable=not progress):
+            inst, sem = render_labels(scene, K, c2w, w, h, topk=topk, backend=backend)
+            yield stem, inst, sem
+
+    with atomic_dir(out_dir) as tmp:
+        write_coco_panoptic(tmp, rendered(), scene.classes, votes)
+    return out_dir / "panoptic.json"
+
+
+def has_labels(scene) -> bool:
+    """Whether the scene carries panoptic labels (hard ids, or semantic logits / instance queries)."""
+    s = scene.surfels
+    return ("instance_id" in s or "semantic_id" in s or int(s["semantic"].shape[1]) > 0
+            or int(scene.queries["feature"].shape[0]) > 0)
+
+
+def cli_labels(opts) -> int:
+    """`psimap labels scene.ckpt DATA --out DIR`."""
+    import psimap
+
+    ckpt = Path(opts.ckpt)
+    if not ckpt.is_file():
+        raise PsimapError(f"no such checkpoint: {ckpt}")
+    scene = psimap.load(ckpt)
+    if not has_labels(scene):
+        raise PsimapError(f"{ckpt}: the checkpoint has no panoptic labels (train with the panoptic field)")
+    path = write_labels(scene, opts.data, opts.out, progress=True)
+    import json
+
+    meta = json.loads(Path(path).read_text())
+    n_seg = sum(len(a["segments_info"]) for a in meta["annotations"])
+    things = {s["id"] for a in meta["annotations"] for s in a["segments_info"]
+              if s["category_id"] in {c["id"] for c in meta["categories"] if c["isthing"]}}
+    print(f"wrote {len(meta['images'])} label PNGs + {path} ({n_seg} segments, {len(things)} 3D instances)")
+    return 0
