@@ -1,0 +1,381 @@
+"""The panoptic field (paper §4): per-surfel semantic logits and instance features, instance queries,
+per-frame Hungarian supervision from noisy 2D masks, and dynamic query adjustment.
+
+Rendering is injected: `losses(render, ...)` calls `render(idx [V], features [V, C], topk)` which
+must return a RenderOutput of the visible surfels `idx` (the trainer renders them with its current,
+possibly learnable, geometry, so the panoptic losses also reach geometry through the Top-K weights).
+`fit_panoptic` trains the field alone on fixed geometry (a scene with trained or ground-truth surfels).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from psimap import PsimapError
+from psimap.panoptic.adjust import duplicate_queries, useless_queries
+from psimap.panoptic.matching import hungarian_match, masks_from_ids, matched_mask_loss
+from psimap.panoptic.queries import InstanceQueries, init_from_points
+
+
+@dataclass
+class PanopticConfig:
+    feat_dim: int = 16              # instance feature size per surfel and query
+    topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
+    temperature: float = 0.1        # softmax temperature over query affinities
+    init_frames: int = 8            # frames (spread over the sequence) whose masks seed the queries
+    min_mask_fraction: float = 0.002  # 2D masks smaller than this fraction of the image are ignored
+    pixels_per_step: int = 4096     # pixels sampled per frame for matching and losses
+    w_ins: float = 1.0              # lambda_3
+    w_sem: float = 1.0              # lambda_4
+    lr_surfel: float = 0.02         # Adam lr of per-surfel features
+    lr_query: float = 0.01          # Adam lr of queries and attention weights
+    reject_dice: float = 0.95       # matches with Dice cost above this are not supervised
+    adjust_start: int = 60          # first step of dynamic query adjustment
+    adjust_every: int = 60          # then every this many steps
+    min_match_rate: float = 0.1     # useless: matched in fewer of the frames that see it
+    iom_threshold: float = 0.6      # duplicate: IoM with a larger query above this
+    mask_affinity: float = 0.5      # 3D mask of a query: surfels with A(q, g) above this
+    min_instance_surfels: int = 10  # instances with fewer surfels are dropped at export
+
+
+def class_tables(classes) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ids [S] long, isthing [S] bool): column j of the semantic logits is the j-th class."""
+    cls = [c if isinstance(c, dict) else {"id": c.id, "name": c.name, "isthing": c.isthing} for c in classes]
+    ids = torch.tensor([int(c["id"]) for c in cls], dtype=torch.long)
+    thing = torch.tensor([bool(c["isthing"]) for c in cls], dtype=torch.bool)
+    return ids, thing
+
+
+def id_to_column(ids: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
+    """Map class ids in `label` to logit columns; -1 for void (0) and ids not in the table."""
+    if ids.numel() == 0:
+        return torch.full_like(label, -1)
+    lut = torch.full((int(max(int(ids.max()), int(label.max()) if label.numel() else 0)) + 1,), -1,
+                     dtype=torch.long)
+    lut[ids] = torch.arange(ids.numel())
+    out = lut[label.clamp_min(0)]
+    out[label <= 0] = -1
+    return out
+
+
+def thing_masks(instance: torch.Tensor, semantic: torch.Tensor | None, ids: torch.Tensor,
+                thing: torch.Tensor, min_pixels: int):
+    """Binary masks [M, H, W] of the frame's thing instances (stuff is semantic only).
+
+    A mask's class is the majority class of its pixels; without semantics every mask counts.
+    """
+    masks, mids = masks_from_ids(instance, min_pixels=min_pixels)
+    if masks.shape[0] == 0 or semantic is None or ids.numel() == 0:
+        return masks
+    cols = id_to_column(ids, semantic)
+    keep = []
+    for m in masks:
+        c = cols[m]
+        c = c[c >= 0]
+        keep.append(bool(c.numel()) and bool(thing[torch.bincount(c, minlength=ids.numel()).argmax()]))
+    return masks[torch.tensor(keep, dtype=torch.bool)]
+
+
+def backproject(depth: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """World points [P, 3] of the mask's pixels with valid depth (pixel centres at integers)."""
+    ys, xs = torch.nonzero(mask & (depth > 0), as_tuple=True)
+    z = depth[ys, xs].double()
+    x = (xs.double() - K[0, 2]) / K[0, 0] * z
+    y = (ys.double() - K[1, 2]) / K[1, 1] * z
+    pc = torch.stack([x, y, z], -1)
+    return (pc @ c2w[:3, :3].T.double() + c2w[:3, 3].double()).float()
+
+
+def init_queries(frames, classes, cfg: PanopticConfig, scene_scale: float,
+                 generator: torch.Generator | None = None) -> InstanceQueries:
+    """Queries from the thing masks of `cfg.init_frames` frames spread over the sequence.
+
+    Every mask gives one query (Gaussian = its back-projected points): more queries than objects,
+    on purpose; dynamic adjustment removes the useless and duplicate ones during training.
+    """
+    ids, thing = class_tables(classes)
+    n = len(frames)
+    picks = np.unique(np.linspace(0, n - 1, min(cfg.init_frames, n)).round().astype(int)) if n else []
+    groups = []
+    for i in picks:
+        fr = frames[int(i)]
+        if fr.instance is None:
+            continue
+        inst = torch.as_tensor(np.asarray(fr.instance, dtype=np.int64))
+        sem = None if fr.semantic is None else torch.as_tensor(np.asarray(fr.semantic, dtype=np.int64))
+        min_px = max(1, int(cfg.min_mask_fraction * inst.numel()))
+        depth = torch.as_tensor(np.asarray(fr.depth, dtype=np.float32))
+        for m in thing_masks(inst, sem, ids, thing, min_px):
+            pts = backproject(depth, torch.as_tensor(fr.K), torch.as_tensor(fr.c2w), m)
+            if pts.shape[0] >= 3:
+                groups.append(pts)
+    feat, mean, cov = init_from_points(groups, cfg.feat_dim, generator=generator)
+    return InstanceQueries(feat, mean, cov, temperature=cfg.temperature, scene_scale=scene_scale)
+
+
+class PanopticField(nn.Module):
+    """Per-surfel semantic logits [N, S] and instance features [N, F], plus the instance queries."""
+
+    def __init__(self, n_surfels: int, classes, queries: InstanceQueries, cfg: PanopticConfig,
+                 generator: torch.Generator | None = None):
+        super().__init__()
+        self.cfg = cfg
+        self.class_ids, self.class_thing = class_tables(classes)
+        s = self.class_ids.numel()
+        self.semantic = nn.Parameter(torch.zeros(n_surfels, s))
+        self.instance = nn.Parameter(0.1 * torch.randn(n_surfels, cfg.feat_dim, generator=generator))
+        self.queries = queries
+        self.matched = torch.zeros(queries.count)
+        self.visible = torch.zeros(queries.count)
+        self.steps = 0
+        self._make_optimizers()
+
+    # ---- optimisation bookkeeping -------------------------------------------------------------
+    def _make_optimizers(self) -> None:
+        self.opt_surfel = torch.optim.Adam([self.semantic, self.instance], lr=self.cfg.lr_surfel)
+        self.opt_query = torch.optim.Adam(list(self.queries.parameters()), lr=self.cfg.lr_query)
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        self.opt_surfel.zero_grad(set_to_none=set_to_none)
+        self.opt_query.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        for p in (self.semantic, self.instance, *self.queries.parameters()):
+            if p.grad is not None:
+                torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        self.opt_surfel.step()
+        self.opt_query.step()
+        self.steps += 1
+
+    def remap(self, idx: torch.Tensor) -> None:
+        """Follow the trainer's densification: new surfel j takes old surfel idx[j]'s parameters."""
+        state = {k: self.opt_surfel.state.get(p, {}) for k, p in (("s", self.semantic), ("i", self.instance))}
+        self.semantic = nn.Parameter(self.semantic.detach()[idx].clone())
+        self.instance = nn.Parameter(self.instance.detach()[idx].clone())
+        old_s, old_i = state["s"], state["i"]
+        self.opt_surfel = torch.optim.Adam([self.semantic, self.instance], lr=self.cfg.lr_surfel)
+        for p, st in ((self.semantic, old_s), (self.instance, old_i)):
+            if st:
+                self.opt_surfel.state[p] = {"step": st["step"], "exp_avg": st["exp_avg"][idx].clone(),
+                                            "exp_avg_sq": st["exp_avg_sq"][idx].clone()}
+
+    # ---- losses -------------------------------------------------------------------------------
+    def losses(self, render, means: torch.Tensor, visible_idx: torch.Tensor, instance: torch.Tensor | None,
+               semantic: torch.Tensor | None, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int,
+               generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """(L_ins, L_sem, info) for one frame.
+
+        render(idx [V], features [V, C], topk) -> RenderOutput; means [N, 3] (detached positions are
+        used for the queries' Gaussians); visible_idx [V] surfels in this view; instance / semantic
+        [H, W] long per-frame pseudo-labels (None when absent).
+        """
+        cfg = self.cfg
+        q = self.queries.count
+        s = self.class_ids.numel()
+        pos = means.detach()[visible_idx]
+        f_vis = self.instance[visible_idx]
+        fq = self.queries.attend(f_vis, pos)
+        dist = self.queries.distribution(f_vis, pos, fq)                           # [V, Q]
+        feats = torch.cat([dist, self.semantic[visible_idx]], dim=-1)
+        out = render(visible_idx, feats, cfg.topk)
+        img = out.features.reshape(-1, q + s)
+        alpha = out.alpha.reshape(-1)
+        hw = img.shape[0]
+        npx = min(cfg.pixels_per_step, hw)
+        pix = torch.randperm(hw, generator=generator)[:npx]
+        info = {"queries": q, "matched": 0, "masks": 0}
+        zero = img.sum() * 0.0
+        # Instance: per-frame Hungarian matching of the queries' rendered masks to the 2D masks.
+        l_ins = zero
+        if instance is not None and q > 0:
+            min_px = max(1, int(cfg.min_mask_fraction * hw))
+            masks = thing_masks(instance, semantic, self.class_ids, self.class_thing, min_px)
+            info["masks"] = int(masks.shape[0])
+            self._count_visible(K, w2c, width, height)
+            if masks.shape[0]:
+                target = masks.reshape(masks.shape[0], -1)[:, pix].float()        # [M, P]
+                prob = img[pix, :q].T.clamp(0.0, 1.0)                             # [Q, P]
+                match = hungarian_match(prob, target, reject_dice=cfg.reject_dice)
+                l_ins = matched_mask_loss(prob, target, match)
+                self.matched[match.query_idx] += 1
+                info["matched"] = int(match.query_idx.numel())
+        # Semantic: cross-entropy of alpha-normalised blended logits on labelled, covered pixels.
+        l_sem = zero
+        if semantic is not None and s > 0:
+            cols = id_to_column(self.class_ids, semantic.reshape(-1))[pix]
+            a = alpha[pix]
+            ok = (cols >= 0) & (a > 0.5)
+            if bool(ok.any()):
+                logits = img[pix][:, q:] / a.unsqueeze(-1).clamp_min(1e-3)
+                l_sem = F.cross_entropy(logits[ok], cols[ok])
+        return cfg.w_ins * l_ins, cfg.w_sem * l_sem, info
+
+    def _count_visible(self, K, w2c, width, height) -> None:
+        """Count frames whose image contains a query's centre (for the usage statistic)."""
+        with torch.no_grad():
+            m = self.queries.mean.detach().double()
+            pc = m @ w2c[:3, :3].T.double() + w2c[:3, 3].double()
+            z = pc[:, 2]
+            x = K[0, 0] * pc[:, 0] / z.clamp_min(1e-9) + K[0, 2]
+            y = K[1, 1] * pc[:, 1] / z.clamp_min(1e-9) + K[1, 2]
+            vis = (z > 0) & (x >= 0) & (x < width) & (y >= 0) & (y < height)
+            self.visible += vis.float()
+
+    # ---- dynamic query adjustment -------------------------------------------------------------
+    def global_query_features(self, means: torch.Tensor) -> torch.Tensor:
+        """Query features attended over all surfels (used for scene-wide assignment / export)."""
+        with torch.no_grad():
+            return self.queries.attend(self.instance.detach(), means.detach())
+
+    def affinity_all(self, means: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+        """A(q, g) for every surfel [N, Q] (chunked)."""
+        fq = self.global_query_features(means)
+        with torch.no_grad():
+            parts = [self.queries.affinity(self.instance[i:i + chunk].detach(), means[i:i + chunk].detach(), fq)
+                     for i in range(0, means.shape[0], chunk)]
+        return torch.cat(parts) if parts else means.new_zeros(0, self.queries.count)
+
+    def adjust(self, means: torch.Tensor) -> int:
+        """Drop useless and duplicate queries; returns how many were removed."""
+        q = self.queries.count
+        if q <= 1:
+            return 0
+        masks = self.affinity_all(means) > self.cfg.mask_affinity                   # [N, Q]
+        drop = duplicate_queries(masks, self.cfg.iom_threshold)
+        drop |= useless_queries(self.matched, self.visible, self.cfg.min_match_rate)
+        drop |= masks.sum(0) == 0                                                    # covers nothing
+        if bool(drop.all()):                                                         # keep the best one
+            drop[int(torch.argmax(self.matched))] = False
+        keep = ~drop
+        removed = int(drop.sum())
+        if removed:
+            self.queries.keep(keep)
+            self.matched = self.matched[keep]
+            self.visible = self.visible[keep]
+            self._make_optimizers()
+        return removed
+
+    def maybe_adjust(self, means: torch.Tensor) -> int:
+        c = self.cfg
+        if self.steps >= c.adjust_start and (self.steps - c.adjust_start) % c.adjust_every == 0:
+            return self.adjust(means)
+        return 0
+
+    # ---- export -------------------------------------------------------------------------------
+    def assign(self, means: torch.Tensor) -> dict:
+        """Hard labels for the checkpoint.
+
+        semantic_id [N] = class of the largest logit; instance_id [N] = 1 + the query of largest
+        affinity for thing surfels (0 for stuff), renumbered 1..I over instances with at least
+        `min_instance_surfels` surfels; instance_class {id: class id by majority vote}.
+        """
+        n = means.shape[0]
+        with torch.no_grad():
+            if self.class_ids.numel():
+                col = self.semantic.argmax(-1)
+                sem = self.class_ids[col]
+                is_thing = self.class_thing[col]
+            else:
+                sem = torch.zeros(n, dtype=torch.long)
+                is_thing = torch.ones(n, dtype=torch.bool)
+            q = self.queries.count
+            inst = torch.zeros(n, dtype=torch.long)
+            instance_class: dict[int, int] = {}
+            if q:
+                owner = self.affinity_all(means).argmax(-1)
+                owner[~is_thing] = -1
+                counts = torch.bincount(owner[owner >= 0], minlength=q)
+                kept = torch.nonzero(counts >= self.cfg.min_instance_surfels).flatten()
+                new_id = torch.zeros(q + 1, dtype=torch.long)
+                new_id[kept] = torch.arange(1, kept.numel() + 1)
+                inst = torch.where(owner >= 0, new_id[owner.clamp_min(0)], inst)
+                for j in range(1, kept.numel() + 1):
+                    members = sem[inst == j]
+                    members = members[members > 0]
+                    if members.numel():
+                        instance_class[j] = int(torch.mode(members).values)
+        return {"instance_id": inst, "semantic_id": sem, "instance_class": instance_class}
+
+    def state_for_checkpoint(self, means: torch.Tensor) -> dict:
+        """Surfel features, hard labels and queries in the checkpoint's layout."""
+        cov = self.queries.cov().detach()
+        lab = self.assign(means)
+        return {
+            "surfels": {"semantic": self.semantic.detach().clone(), "instance": self.instance.detach().clone(),
+                        "instance_id": lab["instance_id"], "semantic_id": lab["semantic_id"]},
+            "queries": {"feature": self.global_query_features(means).clone(),
+                        "mean": self.queries.mean.detach().clone(), "cov": cov.clone()},
+            "instance_class": lab["instance_class"],
+            "config": asdict(self.cfg),
+        }
+
+
+def visible_surfels(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
+    """Indices [V] of surfels whose 3-sigma footprint touches the image (the frustum-local set)."""
+    from psimap.render.project import project_surfels
+
+    with torch.no_grad():
+        p = project_surfels(means, quats, scales, opacities, w2c.to(means.dtype), K.to(means.dtype),
+                            width, height, near, far)
+        box = p.box_precise
+        hit = p.valid & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
+    return torch.nonzero(hit).flatten()
+
+
+def fit_panoptic(surfels: dict, frames, classes, *, iters: int = 300, cfg: PanopticConfig | None = None,
+                 seed: int = 0, backend: str = "auto", progress: bool = False, log=None) -> dict:
+    """Train the panoptic field on fixed geometry; returns `PanopticField.state_for_checkpoint`.
+
+    surfels: means [N,3], quats [N,4], scales [N,2], opacities [N] (tensors); frames: a sequence of
+    Frame with per-frame pseudo-labels. Frames with no labels are skipped.
+    """
+    from tqdm import tqdm
+
+    from psimap.render import rasterize
+
+    cfg = cfg or PanopticConfig()
+    if not len(frames):
+        raise PsimapError("fit_panoptic: no frames")
+    g = torch.Generator().manual_seed(seed)
+    means = surfels["means"].float()
+    quats, scales, opac = surfels["quats"].float(), surfels["scales"].float(), surfels["opacities"].float()
+    colors = torch.zeros_like(means)
+    extent = float((means.max(0).values - means.min(0).values).norm()) if means.shape[0] else 1.0
+    queries = init_queries(frames, classes, cfg, scene_scale=extent, generator=g)
+    field = PanopticField(means.shape[0], classes, queries, cfg, generator=g)
+    labelled = [i for i in range(len(frames)) if frames[i].instance is not None or frames[i].semantic is not None]
+    if not labelled:
+        raise PsimapError("fit_panoptic: no frame has semantic or instance pseudo-labels")
+    order = torch.randint(len(labelled), (iters,), generator=g).tolist()
+    bar = tqdm(order, desc="panoptic", disable=not progress)
+    for it, j in enumerate(bar):
+        fr = frames[labelled[j]]
+        K = torch.as_tensor(fr.K, dtype=torch.float32)
+        w2c = torch.as_tensor(np.linalg.inv(fr.c2w), dtype=torch.float32)
+        h, w = fr.height, fr.width
+        vis = visible_surfels(means, quats, scales, opac, w2c, K, w, h)
+
+        def render(idx, feats, topk):
+            return rasterize(means[idx], quats[idx], scales[idx], opac[idx], colors[idx], w2c, K, w, h,
+                             features=feats, topk=topk, backend=backend)
+
+        inst = None if fr.instance is None else torch.as_tensor(np.asarray(fr.instance, dtype=np.int64))
+        sem = None if fr.semantic is None else torch.as_tensor(np.asarray(fr.semantic, dtype=np.int64))
+        field.zero_grad()
+        l_ins, l_sem, info = field.losses(render, means, vis, inst, sem, K, w2c, w, h, generator=g)
+        loss = l_ins + l_sem
+        if not torch.isfinite(loss):
+            raise PsimapError(f"panoptic training diverged at step {it}: L_ins={float(l_ins)}, L_sem={float(l_sem)}")
+        loss.backward()
+        field.step()
+        removed = field.maybe_adjust(means)
+        if progress:
+            bar.set_postfix(ins=f"{float(l_ins):.3f}", sem=f"{float(l_sem):.3f}", queries=field.queries.count)
+        if log is not None and (removed or it % 50 == 0):
+            log(f"step {it}: L_ins {float(l_ins):.4f} L_sem {float(l_sem):.4f} queries {field.queries.count}"
+                + (f" (-{removed})" if removed else ""))
+    return field.state_for_checkpoint(means)
