@@ -58,13 +58,16 @@ class TrainOptions:
     out: str = opt("scene.ckpt", "checkpoint to write")
     iters: int = opt(0, "training iterations (0 = the config default)")
     seed: int = opt(0, "random seed")
-    resume: str = opt("", "checkpoint to resume from")
+    resume: str = opt("", "checkpoint to resume from (its surfels; --iters more steps)")
+    no_prior: bool = opt(False, "train without the SOGMM prior (plain 2DGS losses; a baseline)")
+    fast: bool = opt(False, "use every core in the renderer (faster, not bit-reproducible)")
 
 
 @dataclass
 class MeshOptions:
     ckpt: str = pos("trained scene checkpoint")
     out: str = opt("mesh.ply", "mesh file to write")
+    voxel: float = opt(0.0, "TSDF voxel size in metres (0 = from the scene's pixel footprint)")
 
 
 @dataclass

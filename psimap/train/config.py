@@ -1,0 +1,78 @@
+"""Every training weight and schedule in one dataclass, with defaults and help text."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+
+def _f(default, help: str):
+    return field(default=default, metadata={"help": help})
+
+
+@dataclass
+class TrainConfig:
+    # ---- schedule --------------------------------------------------------------------------------
+    iters: int = _f(1500, "optimisation steps (one random training frame per step)")
+    seed: int = _f(0, "random seed: same seed, same result on CPU")
+    deterministic: bool = _f(True, "bit-reproducible runs: the native renderer uses one thread "
+                                   "(its multi-threaded backward sums tiles in run-dependent order)")
+    threads: int = _f(0, "renderer threads when not deterministic (0 = all cores)")
+    lowres_until: float = _f(0.3, "fraction of the steps rendered at half resolution (cheap, "
+                                  "coarse geometry first)")
+    log_every: int = _f(50, "steps between progress-bar / log updates")
+
+    # ---- loss weights (paper §4.2 and 2DGS) -----------------------------------------------------
+    lambda_rgb: float = _f(1.0, "lambda_1: photometric loss L_rgb")
+    ssim_weight: float = _f(0.2, "lambda_s: D-SSIM share of L_rgb = (1 - s) L1 + s D-SSIM")
+    lambda_depth: float = _f(1.0, "depth L1 against the observed depth (valid pixels), per metre")
+    lambda_geo: float = _f(1.0, "lambda_2: L_geo, SOGMM point-to-plane distance (per metre) + "
+                                "lambda_n normal alignment")
+    lambda_geo_normal: float = _f(0.1, "lambda_n: weight of 1 - |n_i . n_k| inside L_geo")
+    lambda_iso: float = _f(0.05, "lambda_5: L_iso = ((s1 - s2) / spacing)^2, anisotropy penalty "
+                                 "(scales in units of the initial surfel spacing)")
+    lambda_normal: float = _f(0.05, "2DGS normal consistency: rendered normal vs normal of the "
+                                    "rendered depth")
+    lambda_dist: float = _f(0.0, "2DGS depth distortion (concentrates blending weights along a ray)")
+    regularize_from: float = _f(0.2, "fraction of the steps after which normal consistency and "
+                                     "distortion switch on (they need a roughly placed surface)")
+    use_prior: bool = _f(True, "initialise from and regularise with the SOGMM prior; False = the "
+                               "plain-2DGS baseline (points + kNN scales, no L_geo)")
+
+    # ---- learning rates (positions scale with the scene extent) --------------------------------
+    lr_means: float = _f(2e-4, "position step, in units of the scene extent (decays x0.01 to the end)")
+    lr_quats: float = _f(2e-3, "rotation (quaternion) step")
+    lr_scales: float = _f(5e-3, "log-scale step")
+    lr_opacity: float = _f(5e-2, "opacity-logit step")
+    lr_colors: float = _f(5e-2, "colour-logit step")
+
+    # ---- adaptive density control -----------------------------------------------------------------
+    densify_from: float = _f(0.1, "fraction of steps before the first densification")
+    densify_until: float = _f(0.7, "fraction of steps after which the surfel set is frozen")
+    densify_every: int = _f(100, "steps between densification rounds")
+    grad_threshold: float = _f(2e-4, "mean view-space position gradient (per pixel) that marks a "
+                                     "surfel under-fitting: clone it if small, split it if large")
+    split_scale: float = _f(2.0, "a surfel is 'large' (split, not cloned) beyond this many initial "
+                                 "spacings")
+    prune_opacity: float = _f(0.05, "prune surfels whose opacity falls below this")
+    prune_scale: float = _f(0.1, "prune surfels larger than this fraction of the scene extent")
+    budget_factor: float = _f(2.0, "surfel budget = this x the count that covers the prior's area at "
+                                   "the target spacing")
+    spacing_pixels: float = _f(3.0, "target surfel spacing in pixels at the median viewing distance "
+                                    "(finer detail cannot be seen by the training views)")
+
+    # ---- data -----------------------------------------------------------------------------------
+    max_frames: int = _f(300, "use at most this many frames (evenly spaced)")
+    max_width: int = _f(320, "train at most this image width (larger frames are block-averaged "
+                              "down by an integer factor)")
+    max_depth: float = _f(0.0, "ignore observed depth beyond this (m); 0 = keep all")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in (d or {}).items() if k in names})
+
+    @classmethod
+    def help(cls) -> dict[str, str]:
+        return {f.name: f.metadata["help"] for f in fields(cls)}

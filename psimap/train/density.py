@@ -1,0 +1,125 @@
+"""Adaptive density control: clone / split under-fitted surfels, prune useless ones, within a budget.
+
+Surfel parameters live in a dict of leaf tensors (means [N,3], quats [N,4], log_scales [N,2],
+opacity_logit [N], color_logit [N,3]), each its own Adam parameter group; changing N rewrites the
+tensors and the optimiser's moment buffers together (kept rows carry their moments, new rows start
+at zero).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class GradStats:
+    """Running mean of each surfel's view-space positional gradient (pixels) over the views it was in."""
+
+    total: torch.Tensor      # [N]
+    count: torch.Tensor      # [N]
+
+    @classmethod
+    def zeros(cls, n: int) -> "GradStats":
+        return cls(torch.zeros(n), torch.zeros(n))
+
+    def mean(self) -> torch.Tensor:
+        return self.total / self.count.clamp_min(1)
+
+
+def accumulate(stats: GradStats, grad_means, means, viewmat, focal: float) -> None:
+    """Add one view's view-space gradient magnitude.
+
+    grad_means [N,3] dL/dmu (world); means [N,3]; viewmat [4,4]; focal in pixels. Moving a surfel by
+    one pixel moves it z / f metres, so |dL/dpixel| ~ |dL/dmu_parallel| * z / f, the component of
+    the gradient parallel to the image plane (the 3DGS densification signal in pixel units).
+    """
+    with torch.no_grad():
+        R = viewmat[:3, :3]
+        g_cam = grad_means @ R.T                                   # [N, 3] camera-frame gradient
+        z = means @ R[2] + viewmat[2, 3]
+        g_pix = g_cam[:, :2].norm(dim=1) * z.clamp_min(1e-6) / focal
+        seen = (grad_means.abs().sum(1) > 0) & (z > 0)
+        stats.total += torch.where(seen, g_pix, torch.zeros_like(g_pix))
+        stats.count += seen.float()
+
+
+def quat_to_rotmat(q):
+    """[N,4] (w,x,y,z), normalised inside -> [N,3,3]."""
+    q = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+
+
+def _rebuild(params: dict, optimizer, keep, extra: dict) -> None:
+    """Replace each parameter by cat(p[keep], extra[name]) and carry the Adam moments along."""
+    for group in optimizer.param_groups:
+        old = group["params"][0]
+        name = group["name"]
+        new_rows = extra[name].detach()
+        new = torch.cat([old.detach()[keep], new_rows]).requires_grad_(True)
+        st = optimizer.state.pop(old, None)
+        if st:
+            for k in ("exp_avg", "exp_avg_sq"):
+                st[k] = torch.cat([st[k][keep], torch.zeros_like(new_rows)])
+            optimizer.state[new] = st
+        group["params"][0] = new
+        params[name] = new
+
+
+def densify_and_prune(params: dict, optimizer, stats: GradStats, *, grad_threshold: float,
+                      large_scale: float, prune_opacity: float, max_scale: float, budget: int,
+                      generator: torch.Generator) -> dict:
+    """One round of density control; returns counts {"cloned", "split", "pruned", "surfels"}.
+
+    Clone surfels with mean view-space gradient > grad_threshold and max scale <= large_scale;
+    split (2 children sampled on the surfel, scales / 1.6) those larger. Prune opacity <
+    prune_opacity or max scale > max_scale. Growth stops at `budget` surfels (highest-gradient
+    candidates first); above budget the least opaque surfels go.
+    """
+    with torch.no_grad():
+        n = params["means"].shape[0]
+        opacity = torch.sigmoid(params["opacity_logit"])
+        scales = params["log_scales"].exp()
+        smax = scales.max(1).values
+        prune = (opacity < prune_opacity) | (smax > max_scale) | ~torch.isfinite(params["means"]).all(1)
+        g = stats.mean()
+        cand = (g > grad_threshold) & ~prune
+        order = torch.argsort(-g[cand], stable=True)
+        cand_idx = torch.nonzero(cand).squeeze(1)[order]
+        room = max(0, budget - (n - int(prune.sum())))
+        cand_idx = cand_idx[:room]
+        big = smax[cand_idx] > large_scale
+        clone_idx, split_idx = cand_idx[~big], cand_idx[big]
+
+        extra = {k: [] for k in params}
+        for k, v in params.items():                     # clones: exact copies (gradient moves them apart)
+            extra[k].append(v[clone_idx])
+        if len(split_idx):
+            R = quat_to_rotmat(params["quats"][split_idx])
+            s = scales[split_idx]
+            for _ in range(2):
+                uv = torch.randn(len(split_idx), 2, generator=generator) * s
+                pos = params["means"][split_idx] + (R[:, :, :2] @ uv[:, :, None])[..., 0]
+                extra["means"].append(pos)
+                extra["log_scales"].append(torch.log(s / 1.6))
+                for k in ("quats", "opacity_logit", "color_logit"):
+                    extra[k].append(params[k][split_idx])
+        extra = {k: torch.cat(v) for k, v in extra.items()}
+        drop = prune.clone()
+        drop[split_idx] = True                          # parents replaced by their children
+        keep = torch.nonzero(~drop).squeeze(1)
+        _rebuild(params, optimizer, keep, extra)
+        over = params["means"].shape[0] - budget
+        pruned_budget = 0
+        if over > 0:
+            op = torch.sigmoid(params["opacity_logit"])
+            order = torch.argsort(op, stable=True)
+            keep2 = torch.sort(order[over:]).values
+            _rebuild(params, optimizer, keep2, {k: v[:0] for k, v in params.items()})
+            pruned_budget = over
+        return {"cloned": int(len(clone_idx)), "split": int(len(split_idx)),
+                "pruned": int(prune.sum()) + pruned_budget, "surfels": int(params["means"].shape[0])}

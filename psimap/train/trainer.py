@@ -1,0 +1,464 @@
+"""Joint optimisation of the surfel map (geometry + appearance) against posed RGB-D frames.
+
+Flow: frames -> (SOGMM prior -> initial surfels, colour from the images) -> Adam over surfel
+parameters, one random frame per step, with L_rgb + depth L1 + L_geo + L_iso + 2DGS normal
+consistency / distortion -> adaptive density control within a surfel budget -> Scene.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from psimap import PsimapError
+from psimap.train.config import TrainConfig
+from psimap.train import losses as L
+from psimap.train.density import GradStats, accumulate, densify_and_prune, quat_to_rotmat
+
+PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logit", "color_logit")
+
+
+@dataclass
+class TrainFrame:
+    """One training frame at training resolution: rgb [H,W,3], depth [H,W] (0 = invalid), K [3,3]
+    float32 tensors; c2w [4,4] float64 numpy (OpenCV); viewmat [4,4] float32 world-to-camera."""
+
+    name: str
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    K: torch.Tensor
+    c2w: np.ndarray
+    viewmat: torch.Tensor
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth.shape[1])
+
+    @property
+    def valid(self) -> torch.Tensor:
+        return self.depth > 0
+
+
+class Diverged(PsimapError):
+    """A loss term or gradient became NaN / inf for too many consecutive steps."""
+
+
+# ------------------------------------------------------------------------------------------------
+# frames
+
+
+def downscale(rgb, depth, K, factor: int):
+    """Block-average by an integer factor. rgb [H,W,3], depth [H,W] (0 = invalid), K [3,3] numpy.
+
+    A block's depth is kept only when all its pixels are valid and agree within 5 % (no mixing
+    across depth edges). Pixel centres: new pixel j covers old pixels f j .. f j + f - 1, so
+    c' = (c - (f - 1) / 2) / f and f' = f / factor.
+    """
+    if factor == 1:
+        return rgb, depth, K
+    H, W = depth.shape
+    h, w = H // factor, W // factor
+    r = rgb[: h * factor, : w * factor].reshape(h, factor, w, factor, 3).mean((1, 3))
+    d = depth[: h * factor, : w * factor].reshape(h, factor, w, factor)
+    dmin, dmax = d.min((1, 3)), d.max((1, 3))
+    ok = (dmin > 0) & (dmax - dmin <= 0.05 * dmax)
+    dd = np.where(ok, d.mean((1, 3)), 0.0)
+    K2 = np.array(K, dtype=np.float64)
+    K2[0, 0] /= factor
+    K2[1, 1] /= factor
+    K2[0, 2] = (K2[0, 2] - (factor - 1) / 2) / factor
+    K2[1, 2] = (K2[1, 2] - (factor - 1) / 2) / factor
+    return r.astype(np.float32), dd.astype(np.float32), K2
+
+
+def _to_train_frame(name, rgb, depth, K, c2w) -> TrainFrame:
+    return TrainFrame(name=name, rgb=torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
+                      depth=torch.from_numpy(np.ascontiguousarray(depth, np.float32)),
+                      K=torch.as_tensor(K, dtype=torch.float32), c2w=np.asarray(c2w, np.float64),
+                      viewmat=torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32))
+
+
+def prepare_frames(seq, cfg: TrainConfig, log=print):
+    """Frames at training resolution (width <= cfg.max_width) plus half-resolution copies.
+
+    Frames without any valid depth are skipped (reported by name). Returns (frames, low, skipped).
+    """
+    n = len(seq)
+    if n == 0:
+        raise PsimapError("the data folder has no frames")
+    idx = np.unique(np.linspace(0, n - 1, min(n, cfg.max_frames)).round().astype(int))
+    frames, low, skipped = [], [], []
+    for i in idx:
+        f = seq[int(i)]
+        depth = np.asarray(f.depth, np.float32)
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+        if cfg.max_depth > 0:
+            depth = np.where(depth <= cfg.max_depth, depth, 0.0)
+        rgb = np.asarray(f.rgb, np.float32)
+        if not np.isfinite(rgb).all() or not np.isfinite(f.c2w).all():
+            skipped.append(f.name or str(i))
+            continue
+        if not np.any(depth > 0):
+            skipped.append(f.name or str(i))
+            continue
+        factor = max(1, int(math.ceil(f.width / cfg.max_width)))
+        r, d, K = downscale(rgb, depth, f.K, factor)
+        frames.append(_to_train_frame(f.name or str(i), r, d, K, f.c2w))
+        r2, d2, K2 = downscale(r, d, K, 2)
+        low.append(_to_train_frame(f.name or str(i), r2, d2, K2, f.c2w))
+    if skipped:
+        log(f"skipping {len(skipped)} frame(s) without valid depth: {', '.join(skipped[:5])}"
+            f"{' ...' if len(skipped) > 5 else ''}")
+    if not frames:
+        raise PsimapError("no frame has valid depth: nothing to train on")
+    sizes = {(fr.width, fr.height) for fr in frames}
+    if len(sizes) > 1:
+        raise PsimapError(f"frames differ in size {sorted(sizes)}: one camera resolution expected")
+    return frames, low, skipped
+
+
+def backprojected(frames, stride: int):
+    """World points [P,3] and their colours [P,3] of every `stride`-th valid pixel of each frame."""
+    pts, cols = [], []
+    for fr in frames:
+        d = fr.depth.numpy()[::stride, ::stride]
+        v, u = np.nonzero(d > 0)
+        z = d[v, u].astype(np.float64)
+        K = fr.K.numpy().astype(np.float64)
+        x = (u * stride - K[0, 2]) / K[0, 0] * z
+        y = (v * stride - K[1, 2]) / K[1, 1] * z
+        pc = np.stack([x, y, z], 1)
+        pts.append(pc @ fr.c2w[:3, :3].T + fr.c2w[:3, 3])
+        cols.append(fr.rgb.numpy()[::stride, ::stride][v, u])
+    return np.concatenate(pts), np.concatenate(cols)
+
+
+def target_spacing(frames, pixels: float) -> float:
+    """`pixels` pixel footprints at the median observed depth (what the views can resolve), metres."""
+    med = float(np.median(np.concatenate([fr.depth[fr.valid].numpy()[::7] for fr in frames])))
+    focal = float(np.median([0.5 * (fr.K[0, 0] + fr.K[1, 1]) for fr in frames]))
+    return pixels * med / focal
+
+
+# ------------------------------------------------------------------------------------------------
+# initialisation
+
+
+def _logit(p):
+    p = torch.as_tensor(p, dtype=torch.float32).clamp(1e-4, 1 - 1e-4)
+    return torch.log(p) - torch.log1p(-p)
+
+
+def make_params(means, quats, scales, opacities, colors) -> dict:
+    """Leaf tensors of the optimised parametrisation from plain surfel values."""
+    return {"means": torch.as_tensor(means, dtype=torch.float32).clone().requires_grad_(True),
+            "quats": torch.as_tensor(quats, dtype=torch.float32).clone().requires_grad_(True),
+            "log_scales": torch.log(torch.as_tensor(scales, dtype=torch.float32).clamp_min(1e-7))
+            .requires_grad_(True),
+            "opacity_logit": _logit(opacities).requires_grad_(True),
+            "color_logit": _logit(colors).requires_grad_(True)}
+
+
+def surfel_values(params: dict) -> dict:
+    """Checkpoint surfels (contract) from the parametrisation (detached)."""
+    with torch.no_grad():
+        q = params["quats"] / params["quats"].norm(dim=1, keepdim=True).clamp_min(1e-12)
+        n = params["means"].shape[0]
+        return {"means": params["means"].detach().clone(), "quats": q.clone(),
+                "scales": params["log_scales"].exp().clone(),
+                "opacities": torch.sigmoid(params["opacity_logit"]).clone(),
+                "colors": torch.sigmoid(params["color_logit"]).clone(),
+                "semantic": torch.zeros(n, 0), "instance": torch.zeros(n, 0)}
+
+
+def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
+    """SOGMM prior of the back-projected frames -> surfels on its patches at `spacing`.
+
+    Returns (params, index (SOGMMIndex), info dict with K, area, n_init).
+    """
+    from scipy.spatial import cKDTree
+
+    from psimap.geometry.points import backproject_frame
+    from psimap.geometry.sogmm import SOGMMIndex, fit_sogmm, sample_surfels
+
+    stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+    pts4 = np.concatenate([backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(), fr.c2w,
+                                             stride=stride) for fr in frames])
+    t0 = time.perf_counter()
+    sogmm = fit_sogmm(pts4)
+    side = sogmm.extents()
+    area = float((side[:, 0] * side[:, 1]).sum())
+    n_init = max(16, int(round(area / spacing**2)))
+    means, quats, scales, _ = sample_surfels(sogmm, n_init, seed=cfg.seed)
+    log(f"SOGMM prior: K = {sogmm.K} components from {len(pts4)} points, residual "
+        f"{sogmm.fit_stats.get('residual_mean', float('nan')) * 1000:.1f} mm, {time.perf_counter() - t0:.1f} s; "
+        f"{n_init} surfels at {spacing * 100:.1f} cm spacing over {area:.1f} m^2")
+    # colour: the image colour of the nearest observed point
+    p, c = backprojected(frames, stride)
+    _, nn = cKDTree(p).query(means, k=1)
+    colors = c[nn]
+    params = make_params(means, quats, scales, np.full(len(means), 0.7), colors)
+    return params, SOGMMIndex(sogmm), {"sogmm_K": sogmm.K, "area": area, "n_init": len(means)}
+
+
+def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
+    """Baseline without the prior (plain 2DGS): surfels at observed points, isotropic kNN scales,
+    random rotations, as many as the prior would give for the voxelised observed surface."""
+    from scipy.spatial import cKDTree
+
+    from psimap.geometry.points import voxel_downsample
+
+    stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+    p, c = backprojected(frames, stride)
+    pc = voxel_downsample(np.concatenate([p, c], 1), spacing)
+    means, colors = pc[:, :3], pc[:, 3:6]
+    d, _ = cKDTree(means).query(means, k=4)
+    s = np.clip(d[:, 1:].mean(1), 1e-4, 10 * spacing)
+    rng = np.random.default_rng(cfg.seed)
+    q = rng.normal(size=(len(means), 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    log(f"baseline init: {len(means)} surfels from observed points (no prior)")
+    params = make_params(means, q, np.stack([s, s], 1), np.full(len(means), 0.7), np.clip(colors, 0, 1))
+    return params, None, {"sogmm_K": 0, "area": float(len(means) * spacing**2), "n_init": len(means)}
+
+
+# ------------------------------------------------------------------------------------------------
+# training
+
+
+def _optimizer(params: dict, cfg: TrainConfig, extent: float):
+    lrs = {"means": cfg.lr_means * extent, "quats": cfg.lr_quats, "log_scales": cfg.lr_scales,
+           "opacity_logit": cfg.lr_opacity, "color_logit": cfg.lr_colors}
+    groups = [{"params": [params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES]
+    return torch.optim.Adam(groups, eps=1e-15), lrs["means"]
+
+
+def render(params: dict, fr: TrainFrame, need_features: bool = False):
+    from psimap.render import rasterize
+
+    q = params["quats"]
+    return rasterize(params["means"], q / q.norm(dim=1, keepdim=True).clamp_min(1e-12),
+                     params["log_scales"].exp(), torch.sigmoid(params["opacity_logit"]),
+                     torch.sigmoid(params["color_logit"]), fr.viewmat, fr.K, fr.width, fr.height,
+                     backend="auto")
+
+
+def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: float,
+               regularize: bool, generator: torch.Generator | None = None,
+               geo_samples: int = 8192) -> tuple[dict, object]:
+    """Weighted loss terms of one view (name -> scalar tensor) and the render output."""
+    out = render(params, fr)
+    terms = {}
+    terms["rgb"] = cfg.lambda_rgb * L.rgb_loss(out.rgb, fr.rgb, cfg.ssim_weight)
+    if cfg.lambda_depth > 0:
+        terms["depth"] = cfg.lambda_depth * L.depth_l1(out.depth, fr.depth, fr.valid)
+    scales = params["log_scales"].exp()
+    if cfg.lambda_iso > 0:
+        terms["iso"] = cfg.lambda_iso * L.iso_loss(scales, spacing)
+    if cfg.use_prior and cfg.lambda_geo > 0 and index is not None:
+        from psimap.geometry.sogmm import geo_loss
+
+        n = params["means"].shape[0]
+        # an unbiased estimate of the mean over a random subset keeps the per-step cost bounded
+        sub = torch.randperm(n, generator=generator)[:geo_samples] if n > geo_samples else slice(None)
+        R = quat_to_rotmat(params["quats"][sub])
+        terms["geo"] = cfg.lambda_geo * geo_loss(params["means"][sub], R[:, :, 2], index,
+                                                 lambda_n=cfg.lambda_geo_normal)
+    if regularize and cfg.lambda_normal > 0:
+        terms["normal"] = cfg.lambda_normal * L.normal_consistency(out.normal, out.alpha, out.depth, fr.K)
+    if regularize and cfg.lambda_dist > 0:
+        terms["distortion"] = cfg.lambda_dist * out.distortion.mean()
+    return terms, out
+
+
+@torch.no_grad()
+def depth_error(params: dict, frames) -> float:
+    """Mean |rendered depth - observed depth| (m) over the valid pixels of `frames`."""
+    tot, cnt = 0.0, 0
+    for fr in frames:
+        out = render(params, fr)
+        v = fr.valid
+        tot += float((out.depth - fr.depth).abs()[v].sum())
+        cnt += int(v.sum())
+    return tot / max(cnt, 1)
+
+
+def _isatty() -> bool:
+    return sys.stderr.isatty()
+
+
+def train(data, cfg: TrainConfig | None = None, *, resume=None, progress: bool | None = None,
+          log=None):
+    """Train a surfel map on `data` (a folder path or a FrameSequence); returns a psimap.scene.Scene.
+
+    resume: a Scene or checkpoint path to continue from (its surfels; cfg.iters more steps).
+    Raises PsimapError (Diverged) when a loss term or gradient stays non-finite; never returns NaN.
+    """
+    threads = torch.get_num_threads()
+    # torch's intra-op threads spin-wait badly on a busy CPU and the per-step tensors are small:
+    # one thread is both faster in practice and bit-reproducible
+    torch.set_num_threads(1)
+    try:
+        return _train(data, cfg, resume=resume, progress=progress, log=log)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(data, cfg, *, resume, progress, log):
+    from tqdm import tqdm
+
+    from psimap.scene import Scene, load_scene
+
+    cfg = cfg or TrainConfig()
+    log = log or (lambda msg: print(msg, file=sys.stderr))
+    progress = _isatty() if progress is None else progress
+    t_start = time.perf_counter()
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    _set_threads(cfg)
+
+    if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):
+        from psimap.data import load
+
+        seq = load(data)
+        data_path = str(data)
+    else:
+        seq, data_path = data, str(getattr(data, "root", ""))
+    frames, low, skipped = prepare_frames(seq, cfg, log)
+    spacing = target_spacing(frames, cfg.spacing_pixels)
+    p_all, _ = backprojected(frames[:: max(1, len(frames) // 20)], 4)
+    extent = float(np.linalg.norm(np.percentile(p_all, 99, 0) - np.percentile(p_all, 1, 0)))
+
+    index = None
+    steps_before = 0
+    if resume is not None:
+        prev = resume if isinstance(resume, Scene) else load_scene(resume)
+        s = prev.surfels
+        params = make_params(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"])
+        steps_before = int(prev.metrics.get("steps", 0))
+        info = {"sogmm_K": int(prev.metrics.get("sogmm_K", 0)),
+                "n_init": int(prev.metrics.get("n_init", len(prev))),
+                "area": float(prev.metrics.get("prior_area", len(prev) * spacing**2))}
+        if cfg.use_prior and cfg.lambda_geo > 0:
+            from psimap.geometry.sogmm import SOGMMIndex, fit_sogmm
+            from psimap.geometry.points import backproject_frame
+
+            stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+            pts4 = np.concatenate([backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(),
+                                                     fr.c2w, stride=stride) for fr in frames])
+            index = SOGMMIndex(fit_sogmm(pts4))
+        log(f"resuming from {getattr(prev, 'path', None) or 'scene'}: {len(prev)} surfels, "
+            f"{steps_before} steps done")
+    elif cfg.use_prior:
+        params, index, info = init_from_prior(frames, cfg, spacing, log)
+    else:
+        params, index, info = init_from_points(frames, cfg, spacing, log)
+    budget = max(int(cfg.budget_factor * info["n_init"]), 16)
+
+    eval_frames = frames[:: max(1, len(frames) // 6)][:6]
+    depth_err_start = depth_error(params, eval_frames)
+    optimizer, lr_means0 = _optimizer(params, cfg, extent)
+    grad_stats = GradStats.zeros(params["means"].shape[0])
+    iters = int(cfg.iters)
+    lowres_steps = int(cfg.lowres_until * iters)
+    reg_from = int(cfg.regularize_from * iters)
+    dens_from, dens_until = int(cfg.densify_from * iters), int(cfg.densify_until * iters)
+    ema, first_loss, nonfinite_streak, skipped_steps = {}, None, 0, 0
+    recent, window = [], max(1, iters // 10)      # final loss = mean of the last 10 % of steps
+    history = []
+    dens_log = []
+    bar = tqdm(total=iters, desc="train", disable=not progress, dynamic_ncols=True)
+    order = rng.integers(0, len(frames), size=iters)
+    for step in range(iters):
+        fi = int(order[step])
+        fr = low[fi] if step < lowres_steps else frames[fi]
+        terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen)
+        bad = L.first_nonfinite(terms)
+        if bad is None:
+            loss = sum(terms.values())
+            loss.backward()
+            bad = next((f"gradient of {k}" for k in PARAM_NAMES
+                        if params[k].grad is not None and not bool(torch.isfinite(params[k].grad).all())),
+                       None)
+        if bad is not None:
+            # skip this update: one bad frame must not poison the map; a persistent one is an error
+            optimizer.zero_grad(set_to_none=True)
+            nonfinite_streak += 1
+            skipped_steps += 1
+            if nonfinite_streak >= 10:
+                bar.close()
+                raise Diverged(f"training diverged at step {steps_before + step}: loss term '{bad}' "
+                               f"was NaN/inf for {nonfinite_streak} consecutive steps "
+                               f"(frame {fr.name}); nothing was written")
+            continue
+        nonfinite_streak = 0
+        if step < dens_until:
+            accumulate(grad_stats, params["means"].grad, params["means"].detach(), fr.viewmat,
+                       float(0.5 * (fr.K[0, 0] + fr.K[1, 1])))
+        # position step decays exponentially to 1 % (coarse moves first, then refinement)
+        optimizer.param_groups[0]["lr"] = lr_means0 * 0.01 ** (step / max(iters - 1, 1))
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        vals = {k: float(v.detach()) for k, v in terms.items()}
+        vals["total"] = float(sum(vals.values()))
+        if first_loss is None:
+            first_loss = dict(vals)
+        for k, v in vals.items():
+            ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
+        recent.append(vals)
+        if len(recent) > window:
+            recent.pop(0)
+        if dens_from <= step < dens_until and (step + 1) % cfg.densify_every == 0:
+            r = densify_and_prune(params, optimizer, grad_stats, grad_threshold=cfg.grad_threshold,
+                                  large_scale=cfg.split_scale * spacing, prune_opacity=cfg.prune_opacity,
+                                  max_scale=cfg.prune_scale * extent, budget=budget, generator=gen)
+            dens_log.append({"step": steps_before + step + 1, **r})
+            grad_stats = GradStats.zeros(params["means"].shape[0])
+        if (step + 1) % cfg.log_every == 0 or step == iters - 1:
+            history.append({"step": steps_before + step + 1, "loss": ema["total"],
+                            "surfels": int(params["means"].shape[0]),
+                            "time_s": time.perf_counter() - t_start})
+            bar.set_postfix(loss=f"{ema['total']:.4f}", surfels=int(params["means"].shape[0]))
+        bar.update(1)
+    bar.close()
+    # final prune of surfels that ended up invisible (opacity faded) or degenerate
+    with torch.no_grad():
+        keep = torch.sigmoid(params["opacity_logit"]) >= cfg.prune_opacity
+        for k in PARAM_NAMES:
+            params[k] = params[k].detach()[keep]
+    depth_err_end = depth_error(params, eval_frames)
+    loss_end = {k: float(np.mean([r[k] for r in recent if k in r])) for k in (recent[-1] if recent else {})}
+    seconds = time.perf_counter() - t_start
+    n = int(params["means"].shape[0])
+    log(f"trained {iters} steps in {seconds:.1f} s: loss {first_loss['total'] if first_loss else float('nan'):.4f} -> "
+        f"{loss_end.get('total', float('nan')):.4f}, depth error {depth_err_start * 100:.2f} -> "
+        f"{depth_err_end * 100:.2f} cm, {n} surfels (budget {budget})")
+    metrics = {"steps": steps_before + iters, "seconds": seconds, "surfels": n, "budget": budget,
+               "sogmm_K": info["sogmm_K"], "n_init": info["n_init"], "prior_area": info["area"],
+               "spacing": spacing, "extent": extent,
+               "loss_start": first_loss or {}, "loss_end": loss_end, "depth_l1_start": depth_err_start,
+               "depth_l1_end": depth_err_end, "skipped_frames": skipped, "skipped_steps": skipped_steps,
+               "history": history, "densify": dens_log}
+    cams = {"K": torch.stack([fr.K.double() for fr in frames]),
+            "c2w": torch.as_tensor(np.stack([fr.c2w for fr in frames])),
+            "width": frames[0].width, "height": frames[0].height, "names": [fr.name for fr in frames]}
+    config = {**cfg.to_dict(), "data": data_path}
+    return Scene(surfel_values(params), classes=list(getattr(seq, "classes", []) or []), cameras=cams,
+                 config=config, metrics=metrics)
+
+
+def _set_threads(cfg: TrainConfig) -> None:
+    try:
+        from psimap.render import native
+    except Exception:          # native backend not built: the torch reference is deterministic
+        return
+    native.set_num_threads(1 if cfg.deterministic else (cfg.threads or torch.get_num_threads()))

@@ -1,0 +1,231 @@
+"""Training: loss and depth error decrease, no NaN, determinism, resume, skipped frames, NaN guard,
+density control, losses, and the `psimap train` / `psimap mesh` commands on a tiny scene."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from psimap import PsimapError
+from psimap.data.frames import ClassInfo, Frame, FrameSequence
+from psimap.train import losses as L
+from psimap.train.config import TrainConfig
+from psimap.train.trainer import Diverged, train
+
+W, H = 64, 48
+K = np.array([[52.0, 0, 31.5], [0, 52.0, 23.5], [0, 0, 1]])
+
+
+def look_at(eye, target):
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    c = np.eye(4)
+    c[:3, 0], c[:3, 1], c[:3, 2], c[:3, 3] = x, np.cross(z, x), z, eye
+    return c
+
+
+def tiny_scene(n_frames=8):
+    """Floor (2 x 2 m) with a 0.4 m box, checker-textured, seen from a ring of cameras."""
+    import open3d as o3d
+    import trimesh
+
+    floor = trimesh.creation.box((2.0, 2.0, 0.02))
+    floor.apply_translation((0, 0, -0.01))
+    box = trimesh.creation.box((0.4, 0.4, 0.4))
+    box.apply_translation((0.1, 0, 0.2))
+    mesh = trimesh.util.concatenate([floor, box])
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                     o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1).reshape(-1, 3)
+    frames = []
+    for i, a in enumerate(np.linspace(0, 2 * np.pi, n_frames, endpoint=False)):
+        c2w = look_at(np.array([1.6 * np.cos(a), 1.6 * np.sin(a), 1.1]), (0, 0, 0.15))
+        dirs = d @ c2w[:3, :3].T
+        rays = np.concatenate([np.repeat(c2w[None, :3, 3], len(dirs), 0), dirs], 1).astype(np.float32)
+        t = rc.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        ok = np.isfinite(t)
+        p = c2w[:3, 3] + np.where(ok, t, 0)[:, None] * dirs
+        checker = ((np.floor(p[:, 0] / 0.25) + np.floor(p[:, 1] / 0.25) + np.floor(p[:, 2] / 0.25)) % 2)
+        rgb = np.stack([0.2 + 0.6 * checker, 0.5 + 0.2 * (p[:, 2] > 0.01), 0.7 - 0.5 * checker], 1)
+        rgb = np.where(ok[:, None], rgb, 0.0).reshape(H, W, 3).astype(np.float32)
+        depth = np.where(ok, t * (dirs @ c2w[:3, 2]), 0).reshape(H, W).astype(np.float32)
+        frames.append(Frame(rgb=rgb, depth=depth, K=K.copy(), c2w=c2w, name=f"f{i:03d}"))
+    return frames, mesh
+
+
+def sequence(frames):
+    return FrameSequence(loader=lambda i: frames[i], count=len(frames),
+                         classes=[ClassInfo(1, "floor", False), ClassInfo(2, "box", True)])
+
+
+def cfg(**kw):
+    base = dict(iters=60, log_every=10, densify_every=20, densify_from=0.2, densify_until=0.8)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def scene_frames():
+    return tiny_scene()
+
+
+@pytest.fixture(scope="module")
+def trained(scene_frames):
+    frames, _ = scene_frames
+    return train(sequence(frames), cfg(), log=lambda m: None)
+
+
+def test_loss_and_depth_error_decrease(trained):
+    m = trained.metrics
+    assert m["loss_end"]["total"] < 0.8 * m["loss_start"]["total"], (m["loss_start"], m["loss_end"])
+    assert m["loss_end"]["rgb"] < m["loss_start"]["rgb"]
+    assert m["depth_l1_end"] < m["depth_l1_start"], (m["depth_l1_start"], m["depth_l1_end"])
+    assert m["depth_l1_end"] < 0.02                          # 2 cm on exact depth
+    for k, t in trained.surfels.items():
+        if t.is_floating_point():
+            assert torch.isfinite(t).all(), k
+    assert bool((trained.surfels["scales"] > 0).all())
+    assert m["sogmm_K"] > 0 and 0 < m["surfels"] <= m["budget"]
+    assert trained.cameras["names"] == [f"f{i:03d}" for i in range(8)]
+
+
+def test_deterministic_for_a_seed(scene_frames):
+    frames, _ = scene_frames
+    a = train(sequence(frames), cfg(iters=25), log=lambda m: None)
+    b = train(sequence(frames), cfg(iters=25), log=lambda m: None)
+    for k in ("means", "quats", "scales", "opacities", "colors"):
+        assert torch.equal(a.surfels[k], b.surfels[k]), k
+    c = train(sequence(frames), cfg(iters=25, seed=1), log=lambda m: None)
+    assert len(c) != len(a) or not torch.equal(a.surfels["means"], c.surfels["means"])
+
+
+def test_resume_continues(trained, scene_frames, tmp_path):
+    frames, _ = scene_frames
+    ckpt = tmp_path / "scene.ckpt"
+    trained.save(ckpt)
+    resumed = train(sequence(frames), cfg(iters=20), resume=ckpt, log=lambda m: None)
+    assert resumed.metrics["steps"] == trained.metrics["steps"] + 20
+    # starts where the first run ended, far below a fresh start
+    assert resumed.metrics["depth_l1_start"] == pytest.approx(trained.metrics["depth_l1_end"], rel=1e-4)
+    assert resumed.metrics["loss_start"]["total"] < 0.8 * trained.metrics["loss_start"]["total"]
+
+
+def test_frames_without_depth_are_skipped(scene_frames):
+    frames, _ = scene_frames
+    frames = list(frames)
+    bad = Frame(rgb=frames[0].rgb, depth=np.zeros((H, W), np.float32), K=K, c2w=frames[0].c2w,
+                name="nodepth")
+    s = train(sequence(frames[:4] + [bad] + frames[4:]), cfg(iters=10), log=lambda m: None)
+    assert s.metrics["skipped_frames"] == ["nodepth"]
+    assert "nodepth" not in s.cameras["names"] and len(s.cameras["names"]) == 8
+    with pytest.raises(PsimapError, match="no frame has valid depth"):
+        train(sequence([bad, bad]), cfg(iters=5), log=lambda m: None)
+
+
+def test_nan_guard(scene_frames, monkeypatch):
+    frames, _ = scene_frames
+    real = L.rgb_loss
+    calls = {"n": 0}
+
+    def flaky(*a, **k):                  # NaN on the first 3 steps, then fine
+        calls["n"] += 1
+        v = real(*a, **k)
+        return v * float("nan") if calls["n"] <= 3 else v
+
+    monkeypatch.setattr(L, "rgb_loss", flaky)
+    s = train(sequence(frames), cfg(iters=12), log=lambda m: None)
+    assert s.metrics["skipped_steps"] == 3
+    assert all(torch.isfinite(t).all() for t in s.surfels.values() if t.is_floating_point())
+
+    monkeypatch.setattr(L, "rgb_loss", lambda *a, **k: real(*a, **k) * float("nan"))
+    with pytest.raises(Diverged, match="'rgb'"):
+        train(sequence(frames), cfg(iters=30), log=lambda m: None)
+
+
+def test_density_control_clone_split_prune_budget():
+    from psimap.train.density import GradStats, densify_and_prune
+    from psimap.train.trainer import PARAM_NAMES, _optimizer, make_params
+
+    n = 6
+    means = np.zeros((n, 3)); means[:, 0] = np.arange(n)
+    scales = np.full((n, 2), 0.01); scales[1] = 0.2           # surfel 1 is large
+    opac = np.full(n, 0.8); opac[2] = 0.01                    # surfel 2 is transparent
+    q = np.tile([1.0, 0, 0, 0], (n, 1))
+    params = make_params(means, q, scales, opac, np.full((n, 3), 0.5))
+    opt, _ = _optimizer(params, TrainConfig(), 1.0)
+    sum((p**2).sum() for p in params.values()).backward()
+    opt.step()
+    parent_scale = params["log_scales"].exp()[1].detach().clone()
+    stats = GradStats(torch.tensor([1.0, 1.0, 1.0, 0.0, 1.0, 0.0]), torch.ones(n))
+    g = torch.Generator().manual_seed(0)
+    r = densify_and_prune(params, opt, stats, grad_threshold=0.5, large_scale=0.05, prune_opacity=0.05,
+                          max_scale=10.0, budget=100, generator=g)
+    assert r == {"cloned": 2, "split": 1, "pruned": 1, "surfels": 6 - 1 - 1 + 2 + 2}
+    for group in opt.param_groups:                            # optimiser follows the new tensors
+        p = group["params"][0]
+        assert p is params[group["name"]] and opt.state[p]["exp_avg"].shape == p.shape
+    # split children sit in the parent's tangent plane (z = 0) with scales / 1.6
+    kids = params["log_scales"].exp()[-2:]
+    assert torch.allclose(kids, (parent_scale / 1.6).expand(2, 2))
+    assert torch.allclose(params["means"][-2:, 2], torch.zeros(2), atol=1e-6)
+    # budget: growth stops, and above it the least opaque go
+    stats = GradStats(torch.ones(r["surfels"]), torch.ones(r["surfels"]))
+    r2 = densify_and_prune(params, opt, stats, grad_threshold=0.5, large_scale=0.05, prune_opacity=0.0,
+                           max_scale=10.0, budget=5, generator=g)
+    assert r2["surfels"] == 5 and params["means"].shape[0] == 5 and r2["cloned"] == 0
+    assert set(PARAM_NAMES) == set(params)
+
+
+def test_losses():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(20, 24, 3, generator=g)
+    assert float(L.ssim(a, a)) == pytest.approx(1.0, abs=1e-6)
+    assert float(L.ssim(a, torch.rand(20, 24, 3, generator=g))) < 0.3
+    assert float(L.rgb_loss(a, a)) == pytest.approx(0.0, abs=1e-6)
+    # tilted plane z = 2 + 0.5 x (camera frame): normal from depth is the plane normal, facing camera
+    Kt = torch.tensor(K, dtype=torch.float32)
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32),
+                            indexing="ij")
+    rx = (xs - Kt[0, 2]) / Kt[0, 0]
+    depth = 2.0 / (1 - 0.5 * rx)                             # z = 2 + 0.5 x with x = rx z
+    n = L.depth_to_normal(depth, Kt)
+    expect = torch.tensor([0.5, 0.0, -1.0]) / np.sqrt(1.25)
+    inner = n[2:-2, 2:-2].reshape(-1, 3)
+    assert torch.allclose(inner, expect.expand_as(inner), atol=1e-4)
+    assert float(n[0].abs().sum()) == 0.0                    # borders excluded
+    alpha = torch.ones(H, W)
+    assert float(L.normal_consistency(n * 0.7, alpha, depth, Kt)) < 1e-4
+    assert float(L.normal_consistency(-n, alpha, depth, Kt)) == pytest.approx(2.0, abs=1e-3)
+    assert float(L.iso_loss(torch.tensor([[0.02, 0.01]]), 0.01)) == pytest.approx(1.0)
+    v = torch.ones(3, 3, dtype=torch.bool)
+    assert float(L.depth_l1(torch.zeros(3, 3), torch.ones(3, 3), v & False)) == 0.0
+
+
+def test_cli_train_mesh_and_errors(scene_frames, tmp_path):
+    import trimesh
+
+    from psimap.cli import main
+    from psimap.data.scene_format import write_scene
+
+    frames, mesh = scene_frames
+    data = write_scene(tmp_path / "data", frames, [ClassInfo(1, "floor", False)])
+    ckpt = tmp_path / "scene.ckpt"
+    assert main(["train", str(data), "--out", str(ckpt), "--iters", "40"]) == 0
+    out = tmp_path / "mesh.ply"
+    assert main(["mesh", str(ckpt), "--out", str(out)]) == 0
+    m = trimesh.load(out)
+    assert len(m.faces) > 100 and m.visual.vertex_colors is not None
+    # the mesh lies on the true surface (quantised mm depth, 40 steps): median distance < 2 cm
+    from scipy.spatial import cKDTree
+
+    truth = trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]
+    d = cKDTree(truth).query(m.vertices)[0]
+    assert np.median(d) < 0.02, np.median(d)
+    assert main(["train", str(tmp_path / "missing"), "--out", str(tmp_path / "x.ckpt")]) == 1
+    (tmp_path / "bad.ckpt").write_bytes(ckpt.read_bytes()[:1000])
+    assert main(["mesh", str(tmp_path / "bad.ckpt"), "--out", str(tmp_path / "y.ply")]) == 1
+    assert not (tmp_path / "x.ckpt").exists() and not (tmp_path / "y.ply").exists()
