@@ -136,7 +136,11 @@ def render_pair(scene, viewmat, K, topk, tiles="precise", background=None, weigh
     """Render with both backends; loss = sum of random weights * every output (zeroed on `mask`).
     Returns {backend: (RenderOutput, grads wrt means, quats, scales, opacities, colors, features)}."""
     res = {}
-    for backend, dtype in (("reference", ref_dtype), ("native", torch.float32)):
+    runs = [("reference", ref_dtype), ("native", torch.float32)]
+    if ref_dtype == torch.float64:
+        runs.append(("reference32", torch.float32))
+    for key, dtype in runs:
+        backend = "native" if key == "native" else "reference"
         leaves = [t.to(dtype).clone().requires_grad_(True) for t in scene]
         bg = None if background is None else background.to(dtype)
         out = rasterize(*leaves[:5], viewmat.to(dtype), K.to(dtype), W, H, features=leaves[5], topk=topk,
@@ -151,7 +155,7 @@ def render_pair(scene, viewmat, K, topk, tiles="precise", background=None, weigh
             loss = loss + (o * wgt.to(dtype)).sum()
         grads = torch.autograd.grad(loss, leaves, allow_unused=True)
         grads = [torch.zeros_like(x) if gr is None else gr for gr, x in zip(grads, leaves)]
-        res[backend] = (out, [gr.double() for gr in grads])
+        res[key] = (out, [gr.double() for gr in grads])
     return res
 
 
@@ -174,13 +178,20 @@ def assert_forward_close(ref, nat, keep, msg):
                                      f"{float((a - b).abs().max()):.3g} (scale {scale:.3g}; {msg})")
 
 
-def assert_grads_close(gref, gnat, msg):
-    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "features"), gref, gnat):
+def assert_grads_close(gref, gnat, msg, gref32=None):
+    """Per element 1e-4 relative (floor 1e-4 rms). Against the float64 oracle, an element may
+    instead be within 2x the float32 reference's own error: float32 stage-1 quantities lose digits
+    to cancellation (h_x = x T2 - T0 near a surfel's centre), and a float32 kernel cannot beat that."""
+    gref32 = gref32 or [None] * len(gref)
+    for name, a, b, a32 in zip(("means", "quats", "scales", "opacities", "colors", "features"), gref, gnat,
+                               gref32):
         assert bool(torch.isfinite(b).all()), f"grad {name} not finite ({msg})"
         if a.numel() == 0:
             continue
         rms = float(a.pow(2).mean().sqrt())
         tol = 1e-4 * a.abs() + 1e-4 * rms
+        if a32 is not None:
+            tol = torch.maximum(tol, 2 * (a32 - a).abs())
         bad = (a - b).abs() > tol
         assert not bool(bad.any()), (f"grad {name}: {int(bad.sum())}/{a.numel()} differ, max |diff| "
                                      f"{float((a - b).abs().max()):.3g}, rms {rms:.3g} ({msg})")
@@ -206,7 +217,7 @@ def test_native_matches_reference_on_random_scene(topk, tiles):
     # Native counts the evaluations it performs (pixels stop early), the reference every pair.
     assert 0 < nat.stats["evaluated"] <= ref.stats["evaluated"], msg
     assert_forward_close(ref, nat, ~band, msg)
-    assert_grads_close(gref, gnat, msg)
+    assert_grads_close(gref, gnat, msg, res["reference32"][1])
     # Gradients really flow into the geometry (not a vacuous comparison).
     for name, gr in zip(("means", "quats", "scales", "opacities"), gnat[:4]):
         assert float(gr.abs().max()) > 1e-3, (name, msg)
