@@ -151,24 +151,30 @@ def rasterize_reference(proj: Projected, opacities: torch.Tensor, colors: torch.
     need_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (proj.T, proj.center, proj.depth_key, proj.normal_c, opacities, colors, features))
 
-    pix_chunks, out_chunks = [], []
-    evaluated = 0
-    i = 0
-    n_chunks = 0
+    # Chunks of (tiles, pixels of those tiles) holding about `chunk_evals` (pixel, slot) pairs; a tile
+    # whose list alone exceeds the budget is split by pixels, so memory is bounded for any scene.
     chunks = []
+    i = 0
     while i < len(active_counts):
-        size = max(1, chunk_evals // (TILE * TILE * active_counts[i]))
-        chunks.append((active[i:i + size], active_counts[i]))
+        L = active_counts[i]
+        size = max(1, chunk_evals // (TILE * TILE * L))
+        if size > 1 or TILE * TILE * L <= chunk_evals:
+            chunks.append((active[i:i + size], L, local))
+        else:
+            step = max(1, chunk_evals // L)
+            chunks += [(active[i:i + 1], L, local[j:j + step]) for j in range(0, TILE * TILE, step)]
         i += size
     if not chunks:
         # Nothing binned: one empty batch keeps the outputs attached to the inputs' graph, so a loss
         # on an empty view still backpropagates (zero gradients) instead of raising.
-        chunks.append((active, 1))
-    for tids, L in chunks:
-        n_chunks += 1
+        chunks.append((active, 1, local))
+
+    pix_chunks, out_chunks = [], []
+    evaluated = 0
+    for tids, L, pixels in chunks:
         tx, ty = tids % bins.tiles_x, tids // bins.tiles_x
-        px = tx[:, None] * TILE + local % TILE                     # [B, 256]
-        py = ty[:, None] * TILE + local // TILE
+        px = tx[:, None] * TILE + pixels % TILE                    # [B, P]
+        py = ty[:, None] * TILE + pixels // TILE
         inside = (px < width) & (py < height)
         slots = torch.arange(L, device=device)
         real = slots[None, :] < counts[tids][:, None]             # [B, L]
@@ -207,7 +213,7 @@ def rasterize_reference(proj: Projected, opacities: torch.Tensor, colors: torch.
         "max_pairs_per_tile": int(counts.max()) if n_tiles else 0,
         "evaluated": evaluated,
         "culled": int(n - torch.unique(bins.surfel_ids).numel()),
-        "chunks": n_chunks,
+        "chunks": len(chunks),
         "backend": "reference",
         "tiles": tiles,
     }
