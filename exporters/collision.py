@@ -222,7 +222,7 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
             pts = _mesh_points(p, max(200, samples // len(parts)), seed + 2 + i)
             for j, q in enumerate(parts):
                 if j != i:
-                    pts = pts[~_inside_convex(q, pts, -1e-6)]
+                    pts = pts[~_inside_convex(q, pts, 1e-5)]   # shared faces are interior
             union.append(pts)
         union_pts = np.concatenate(union)
         d = np.full(len(mesh_pts), np.inf)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-DEFAULT_SAMPLES = 20_000
+DEFAULT_SAMPLES = 10_000
 
 
 @dataclass
@@ -74,8 +74,10 @@ def simplify_to_count(mesh, faces: int):
 
     from psimap.exporters.repair import drop_slivers
 
+    # open meshes (background) keep their border: collapsing it pulls the rim inwards by cm
     v, f = fast_simplification.simplify(np.asarray(mesh.vertices, np.float64),
-                                        np.asarray(mesh.faces, np.int32), target_count=int(faces))
+                                        np.asarray(mesh.faces, np.int32), target_count=int(faces),
+                                        preserve_border=not mesh.is_watertight)
     # edge collapses can pinch off tiny closed 2-face pockets: drop them, keep the real surface
     return drop_slivers(trimesh.Trimesh(v, f, process=True))
 

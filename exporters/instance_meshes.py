@@ -29,6 +29,7 @@ class InstanceMeshes:
     background: object | None                   # trimesh.Trimesh or None
     views: list = field(default_factory=list)   # texture.View of every camera
     id_maps: list = field(default_factory=list)  # [H, W] int64 rendered instance id per camera
+    voxel_size: float | None = None             # TSDF voxel used for the objects (metres)
 
     def views_for(self, instance_id: int, min_pixels: int = 16):
         """Views in which the instance is visible (colour bake candidates)."""
@@ -98,16 +99,21 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
     from psimap.geometry.tsdf import derive_params
 
     params = derive_params(depths, Ks, c2ws, voxel_size=voxel_size)
+    obj_voxel = params.voxel_size * 0.5
+    from scipy.ndimage import binary_erosion
+
     for t in things:
-        masks = [m == t.instance_id for m in maps]
+        # one-pixel erosion: boundary pixels blend the object's splats over what lies behind, and
+        # fusing them grows a skirt around the silhouette
+        masks = [binary_erosion(m == t.instance_id) for m in maps]
         if sum(int(m.sum()) for m in masks) < 16:
             continue
         # objects are small: half the scene voxel resolves them better at little cost
-        t.mesh = fuse_tsdf(depths, Ks, c2ws, colors=colors, masks=masks, voxel_size=params.voxel_size * 0.5,
+        t.mesh = fuse_tsdf(depths, Ks, c2ws, colors=colors, masks=masks, voxel_size=obj_voxel,
                            depth_max=params.depth_max, keep_fraction=0.2)
     bg_masks = [np.isin(m, list(stuff_ids)) & (m >= 0) for m in maps]
     background = None
     if sum(int(m.sum()) for m in bg_masks) >= 16:
         background = fuse_tsdf(depths, Ks, c2ws, colors=colors, masks=bg_masks, voxel_size=params.voxel_size,
                                depth_max=params.depth_max)
-    return InstanceMeshes(things, background, views, maps)
+    return InstanceMeshes(things, background, views, maps, obj_voxel)

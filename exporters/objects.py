@@ -60,12 +60,14 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
                  source_textured=None, completion: str = "auto", context: dict | None = None,
                  decimation_budget: float | None = None, collision_tolerance: float | None = None,
                  max_hulls: int = 8, densities: dict | None = None, texel: float = 0.001,
-                 seed: int = 0) -> SceneObject:
+                 resolution: float | None = None, seed: int = 0) -> SceneObject:
     """Asset steps 2-7 for one dynamic object.
 
     mesh: trimesh.Trimesh (metres, world frame). views: list of texture.View to bake from;
     source_textured: a textured trimesh to transfer colour from (scans); else vertex colours of
     `mesh` (if any). completion: "auto" calls psimap.completion, "none" skips it.
+    resolution: size (m) of the finest detail the source resolves (TSDF voxel): decimation budget
+    and collision tolerance are never asked to be finer than it.
     """
     from psimap.exporters.collision import collision_geometry
     from psimap.exporters.decimate import decimate_to_budget
@@ -75,24 +77,38 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
     obj = SceneObject(int(instance_id), str(label), mesh, semantic_id=int(semantic_id))
     obj.faces_before = int(len(getattr(mesh, "faces", [])))
     vertex_rgb = _vertex_rgb(mesh)
-    rep = repair_mesh(mesh, need_volume=True)
-    obj.repair_steps = rep.steps
-    if not rep.ok:
-        obj.skipped = f"repair: {rep.reason}"
+    # clean first (floaters, degenerate faces), let completion close a partial scan, then require
+    # a sound watertight solid
+    pre = repair_mesh(mesh, need_volume=False)
+    if not pre.ok:
+        obj.skipped = f"repair: {pre.reason}"
         return obj
-    m = rep.mesh
+    m = pre.mesh
     if completion == "auto":
         from psimap.completion import complete
 
         res = complete(m, dict(context or {}, label=label, instance_id=int(instance_id)))
-        obj.completed, obj.completion_method = bool(res.completed), res.method
-        if res.completed:
-            rep2 = repair_mesh(res.mesh, need_volume=True)
-            if rep2.ok:
-                m = rep2.mesh
-            else:
-                obj.completed = False
-                obj.repair_steps.append(f"completion discarded: {rep2.reason}")
+        obj.completed, obj.completion_method = bool(res.completed), str(res.method)
+        if res.completed and res.mesh is not None:
+            m = res.mesh
+    rep = repair_mesh(m, need_volume=True)
+    obj.repair_steps = pre.steps + rep.steps
+    if not rep.ok and obj.completed:         # a bad completion must not lose the object
+        obj.repair_steps.append(f"completion discarded: {rep.reason}")
+        obj.completed = False
+        rep = repair_mesh(pre.mesh, need_volume=True)
+        obj.repair_steps += rep.steps
+    if not rep.ok:
+        obj.skipped = f"repair: {rep.reason}"
+        return obj
+    m = rep.mesh
+    from psimap.exporters.collision import default_tolerance
+    from psimap.exporters.decimate import default_budget
+
+    if decimation_budget is None:
+        decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0)
+    if collision_tolerance is None:
+        collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
     dec = decimate_to_budget(m, decimation_budget, seed=seed)
     m = dec.mesh
     obj.faces_after = int(len(m.faces))
@@ -108,6 +124,10 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
         obj.skipped = f"physics: {e}"
         return obj
     obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed)
+    if obj.collision.kind == "sphere":
+        # a sphere collider means the object is a ball: its COM is the centre (a reconstruction's
+        # sub-millimetre COM offset would otherwise roll a ball that rests in the scan)
+        obj.physics.com = np.asarray(obj.collision.transform, np.float64)[:3, 3].copy()
     _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
     return obj
 
@@ -214,9 +234,15 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
             objs.append(SceneObject(item.instance_id, item.label, item.mesh, semantic_id=item.semantic_id,
                                     skipped="no surface fused for this instance"))
             continue
+        views = inst.views_for(item.instance_id)
+        context = {"background": inst.background, "voxel_size": inst.voxel_size,
+                   "neighbours": [t.mesh for t in inst.things if t is not item and t.mesh is not None
+                                  and len(t.mesh.faces)],
+                   "cameras": [(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
+                   "depths": [v.depth for v in views], "images": [v.rgb for v in views]}
         objs.append(build_object(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,
-                                 views=inst.views_for(item.instance_id), completion=completion,
-                                 context={"background": inst.background}, seed=seed, **kw))
+                                 views=views, completion=completion, context=context,
+                                 resolution=inst.voxel_size, seed=seed, **kw))
     bg = None
     if inst.background is not None and len(inst.background.faces):
         bg = build_background(inst.background, views=inst.views, seed=seed)

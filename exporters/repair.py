@@ -63,7 +63,9 @@ def _close_holes(mesh, max_hole_edges: int):
     try:
         ms.meshing_repair_non_manifold_edges()
         ms.meshing_repair_non_manifold_vertices()
-        ms.meshing_close_holes(maxholesize=max_hole_edges, newfaceselected=False)
+        # selfintersection=False: the default refuses any patch touching the rim, which leaves the
+        # open bottom of a scanned object (where it meets its support) unclosed
+        ms.meshing_close_holes(maxholesize=max_hole_edges, newfaceselected=False, selfintersection=False)
     except Exception:   # pymeshlab raises on some inputs; the tetwild path below still applies
         pass
     out = ms.current_mesh()
@@ -102,13 +104,14 @@ def _tetwild_surface(mesh, edge_fraction: float):
 
 def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
                 keep_fraction: float = KEEP_COMPONENT_AREA_FRACTION,
-                allow_tetwild: bool = True) -> RepairResult:
+                allow_tetwild: bool = False) -> RepairResult:
     """Clean `mesh` (trimesh.Trimesh, metres) for export.
 
     need_volume: the object is dynamic and needs mass, so it must be watertight with positive
     volume; background (static) meshes pass need_volume=False and only get cleaned.
     min_thickness: smallest extent (m) along the thinnest principal axis; thinner is "flat" and
-    cannot be simulated as a solid.
+    cannot be simulated as a solid. allow_tetwild: when hole closing fails, rebuild the surface
+    with fTetWild (robust, but minutes per object on a laptop CPU, hence off by default).
     """
     import trimesh
 
@@ -130,7 +133,7 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
         return RepairResult(None, False, False,
                             f"flat: thickness {thickness * 1000:.2f} mm < {min_thickness * 1000:.1f} mm")
     if not m.is_watertight:
-        m2 = _close_holes(m, max_hole_edges=max(30, int(0.05 * len(m.faces))))
+        m2 = _close_holes(m, max_hole_edges=len(m.faces) + 3)
         if m2.is_watertight and len(m2.split(only_watertight=False)) == 1:
             m = m2
             steps.append("closed holes")

@@ -112,7 +112,8 @@ def _model_from_tree(tree, path: Path):
 
 
 def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: float = 1e-3,
-               max_drift: float = 0.01, resolve: bool = True, max_speed: float = 5.0) -> dict:
+               max_drift: float = 0.01, resolve: bool = True, max_speed: float = 5.0,
+               support_gap: float = 0.005) -> dict:
     """Load, penetration, settle and stability check of an MJCF scene. Returns a plain dict report:
 
     loaded, bodies, min_contact_dist (m), nudges {body: m}, drift {body: m} for resting bodies,
@@ -130,7 +131,15 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         model = _load(path)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
-    min_dist, _, touching = _penetrations(model, data)
+    min_dist, _, _ = _penetrations(model, data)
+    # "resting" = within support_gap of something at t = 0 (a reconstruction leaves mm gaps):
+    # read contacts once with an enlarged margin, then restore the model
+    margin0 = model.geom_margin.copy()
+    model.geom_margin[:] = np.maximum(margin0, support_gap)
+    mujoco.mj_forward(model, data)
+    _, _, touching = _penetrations(model, data)
+    model.geom_margin[:] = margin0
+    mujoco.mj_forward(model, data)
     free = _free_bodies(model)
     names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in free]
     start = np.array([data.xpos[b].copy() for b in free]).reshape(-1, 3)

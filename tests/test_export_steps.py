@@ -1,0 +1,206 @@
+"""Asset steps one by one: physics, repair (degenerate meshes), decimation, collision, texture."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from psimap import PsimapError
+from psimap.exporters import collision as C
+from psimap.exporters import physics as P
+from psimap.exporters import texture as T
+from psimap.exporters.decimate import decimate_to_budget, surface_distance
+from psimap.exporters.repair import repair_mesh
+
+
+# ---------------------------------------------------------------- physics
+def test_box_mass_inertia_analytic_far_from_origin():
+    a, b, c = 0.3, 0.2, 0.1
+    box = trimesh.creation.box(extents=[a, b, c])
+    box.apply_translation([1000.0, -500.0, 20.0])      # float64 must survive large offsets
+    ph = P.mass_properties(box, "thing", density=1000.0)
+    m = 1000.0 * a * b * c
+    assert ph.mass == pytest.approx(m, rel=1e-9)
+    np.testing.assert_allclose(ph.com, [1000.0, -500.0, 20.0], atol=1e-9)
+    expect = m / 12 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+    np.testing.assert_allclose(np.diag(ph.inertia), expect, rtol=1e-7)
+    np.testing.assert_allclose(np.sort(ph.principal_inertia), np.sort(expect), rtol=1e-7)
+    assert np.linalg.det(ph.principal_axes) == pytest.approx(1.0)
+
+
+def test_density_lookup_by_class_words():
+    assert P.lookup(P.DENSITY_KG_M3, "mustard_bottle")[1] == "bottle"
+    assert P.lookup(P.DENSITY_KG_M3, "Power Drill")[1] == "drill"
+    assert P.lookup(P.DENSITY_KG_M3, "books")[1] == "books"
+    assert P.lookup(P.DENSITY_KG_M3, "zzz unknown")[1] == "default"
+    assert P.lookup(P.FRICTION, "tennis ball")[0] == P.FRICTION["ball"]
+
+
+def test_density_table_file(tmp_path):
+    f = tmp_path / "d.json"
+    f.write_text('{"widget": 1234}')
+    assert P.load_density_table(f)["widget"] == 1234.0
+    f.write_text('{"widget": -1}')
+    with pytest.raises(PsimapError, match="positive"):
+        P.load_density_table(f)
+    f.write_text("[1, 2")
+    with pytest.raises(PsimapError, match="density table"):
+        P.load_density_table(f)
+
+
+def test_mass_of_open_mesh_is_an_error():
+    plane = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    with pytest.raises(PsimapError, match="no volume"):
+        P.mass_properties(plane, "x")
+
+
+# ---------------------------------------------------------------- repair: degenerate inputs
+def _box(**kw):
+    return trimesh.creation.box(extents=kw.get("extents", [0.1, 0.1, 0.1]))
+
+
+def test_repair_rejects_flat_sliver_and_empty():
+    g = np.linspace(0, 0.2, 6)
+    xy = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    idx = np.arange(36).reshape(6, 6)
+    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    flat = trimesh.Trimesh(np.c_[xy, np.zeros(36)], np.vstack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]))
+    r = repair_mesh(flat)
+    assert not r.ok and r.mesh is None and "flat" in r.reason
+    sliver = _box(extents=[0.2, 0.1, 0.0005])
+    r = repair_mesh(sliver)
+    assert not r.ok and ("flat" in r.reason or "sliver" in r.reason)
+    assert not repair_mesh(trimesh.Trimesh()).ok
+    # all vertices NaN -> nothing valid left
+    nan = _box()
+    nan.vertices[:] = np.nan
+    assert not repair_mesh(nan).ok
+
+
+def test_repair_zero_volume_collapsed_box():
+    b = _box()
+    b.vertices[:, 2] = 0.0      # every face collapses onto one plane
+    r = repair_mesh(b)
+    assert not r.ok
+
+
+def test_repair_fixes_inverted_and_drops_floaters():
+    b = _box()
+    b.invert()
+    assert b.volume < 0
+    floater = _box(extents=[0.005, 0.005, 0.005]).apply_translation([1, 1, 1])
+    bad = trimesh.util.concatenate([b, floater])
+    r = repair_mesh(bad)
+    assert r.ok and r.watertight
+    assert r.mesh.volume == pytest.approx(1e-3, rel=1e-6)
+    assert any("floating" in s for s in r.steps)
+
+
+def test_repair_closes_open_bottom_and_rejects_nonmanifold_leftovers():
+    b = _box()
+    keep = b.face_normals[:, 2] > -0.5          # remove the bottom: an object scanned on a table
+    open_box = trimesh.Trimesh(b.vertices, b.faces[keep])
+    r = repair_mesh(open_box)
+    assert r.ok and r.watertight
+    assert r.mesh.volume == pytest.approx(1e-3, rel=1e-3)
+    # non-manifold: a fin (single triangle) glued on an edge of a closed box
+    fin_v = np.vstack([b.vertices, [[0.05, 0.05, 0.3]]])
+    e = b.edges_unique[0]
+    nm = trimesh.Trimesh(fin_v, np.vstack([b.faces, [[e[0], e[1], len(b.vertices)]]]), process=False)
+    r = repair_mesh(nm)
+    assert (r.ok and r.watertight and r.mesh.volume > 0) or (not r.ok and r.reason)
+
+
+# ---------------------------------------------------------------- decimation
+def test_decimation_meets_budget_and_budget_controls_faces():
+    s = trimesh.creation.icosphere(subdivisions=4, radius=0.1)       # 5120 faces
+    loose = decimate_to_budget(s, 0.004)
+    tight = decimate_to_budget(s, 0.0008)
+    assert loose.faces_after < tight.faces_after < 5120
+    for r in (loose, tight):
+        assert r.hausdorff <= r.budget
+        h, _ = surface_distance(s, r.mesh)
+        assert h <= r.budget * 1.1           # independent re-measurement (other samples)
+        assert r.mesh.is_watertight
+    # a too-tight budget keeps the input
+    same = decimate_to_budget(s, 1e-7)
+    assert same.faces_after == 5120
+
+
+# ---------------------------------------------------------------- collision
+def test_primitives_are_recognised():
+    ball = trimesh.creation.icosphere(3, radius=0.05).apply_translation([1, 2, 3])
+    c = C.collision_geometry(ball)
+    assert c.kind == "sphere" and c.size[0] == pytest.approx(0.05, rel=0.02)
+    np.testing.assert_allclose(c.transform[:3, 3], [1, 2, 3], atol=1e-3)
+    R = trimesh.transformations.random_rotation_matrix(np.random.default_rng(0).random(3))
+    box = trimesh.creation.box(extents=[0.3, 0.2, 0.1]).apply_transform(R)
+    c = C.collision_geometry(box)
+    assert c.kind == "box" and c.error < 1e-4
+    np.testing.assert_allclose(np.sort(c.size), [0.05, 0.1, 0.15], atol=1e-5)
+    cyl = trimesh.creation.cylinder(radius=0.04, height=0.3, sections=64)
+    c = C.collision_geometry(cyl)
+    assert c.kind == "cylinder"
+    assert c.size[0] == pytest.approx(0.04, rel=0.02) and c.size[1] == pytest.approx(0.15, rel=0.01)
+
+
+def test_concave_shape_decomposes_within_limits():
+    L = trimesh.boolean.union([trimesh.creation.box(extents=[0.3, 0.06, 0.06]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([0.12, 0, 0.18])],
+                              engine="manifold")
+    c = C.collision_geometry(L, max_hulls=4)
+    assert c.kind == "decomposition"
+    assert 2 <= c.hull_count <= 4
+    assert c.error <= c.tolerance
+    assert all(len(p.vertices) <= C.MAX_HULL_VERTICES for p in c.parts)
+    # the single hull is far off: that is why it was not chosen
+    assert C.collision_geometry(L, max_hulls=1, coacd_thresholds=()).error > 3 * c.tolerance
+
+
+def test_hull_vertex_limit():
+    s = trimesh.creation.icosphere(4, radius=0.1)
+    h = C.limit_hull_vertices(s, 64)
+    assert len(h.vertices) <= 64 and h.is_watertight and h.volume > 0.8 * s.volume
+
+
+# ---------------------------------------------------------------- texture
+def _cam_looking_down(height=1.0, w=64, h=64, f=60.0):
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.diag([1.0, -1.0, -1.0])      # z forward = world -z
+    c2w[2, 3] = height
+    return K, c2w
+
+
+def test_bake_from_views_colours_seen_texels_only():
+    box = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
+    v, f, uv, _ = T.unwrap(box)
+    K, c2w = _cam_looking_down()
+    w = h = 64
+    depth = np.zeros((h, w), np.float32)
+    # depth of the top face (z = 0.1) as seen from height 1: 0.9 m where the box projects
+    ys, xs = np.mgrid[0:h, 0:w]
+    xw = (xs - K[0, 2]) / K[0, 0] * 0.9
+    yw = -(ys - K[1, 2]) / K[1, 1] * 0.9
+    inside = (np.abs(xw) < 0.1) & (np.abs(yw) < 0.1)
+    depth[inside] = 0.9
+    rgb = np.zeros((h, w, 3), np.float32)
+    rgb[..., 0] = 1.0
+    img, cov = T.bake_from_views(v, f, uv, [T.View(rgb, depth, K, c2w)], 64,
+                                 fallback_vertex_rgb=np.zeros((len(v), 3)))
+    # only the top face (1 of 6) is seen: coverage ~ 1/6, the rest stays the black fallback
+    assert 0.08 < cov < 0.3
+    rows, cols, fid, _ = T.rasterize_uv(f, uv, 64)
+    top = np.asarray(trimesh.Trimesh(v, f, process=False).face_normals)[fid, 2] > 0.9
+    assert img[rows[top], cols[top], 0].mean() > 200
+    assert img[rows[~top], cols[~top], 0].mean() < 30
+    # an occluder closer to the camera (depth test): nothing on the box is coloured
+    img2, cov2 = T.bake_from_views(v, f, uv, [T.View(rgb, np.where(inside, 0.5, 0).astype(np.float32), K, c2w)],
+                                   64, fallback_vertex_rgb=np.zeros((len(v), 3)))
+    assert cov2 == 0.0 and img2.max() == 0
+
+
+def test_texture_size_follows_area():
+    small = trimesh.creation.box(extents=[0.05] * 3)
+    big = trimesh.creation.box(extents=[0.5] * 3)
+    assert T.texture_size(small) < T.texture_size(big) <= 1024
