@@ -24,15 +24,17 @@ says what it did: `CompletionResult.method` names the method and `reason` says w
 - "coverage_threshold": float, default 0.9: objects whose directional coverage reaches it are
   returned unchanged.
 - "method": "auto" (default) or one of "plugin", "sphere", "cylinder", "box", "revolution",
-  "closing", "support" to force a method.
+  "closing", "mirror", "support" to force a method.
 
 Methods (one module each), tried in tiers of increasing generality; the first tier with a candidate
 whose fit passes (>= 90 % of observed points within the tolerance of its surface, after free-space
-carving and collision removal) wins; inside a tier the lowest residual wins, weighted by
+carving and collision removal; parametric shapes also need an RMS <= half a voxel) wins; inside a tier the lowest residual wins, weighted by
 complexity (primitives 1.0, revolution 1.25):
 plugin -> primitives (sphere / cylinder / box, `primitives.py`) and rotational symmetry
 (`symmetry.py`) -> watertight Poisson closing of the shell (`closing.py`, only when most
-directions were seen) -> support-aware closing (`support.py`, always available as the fallback).
+directions were seen) -> reflective symmetry: the observation mirrored about up to two credible
+planes, then closed like the fallback (`symmetry.py`) -> support-aware closing (`support.py`,
+always available as the fallback).
 Parts of the observation a fitted shape leaves outside (a mug's handle) are added back as convex
 pieces.
 Constraints (`constraints.py`) and free space (`freespace.py`) apply to every result.
@@ -50,12 +52,14 @@ from psimap import PsimapError
 
 MIN_POINTS = 50               # fewer observed points do not constrain any shape
 ACCEPT_INLIERS = 0.9          # share of observed points within tolerance of a candidate surface
+PARAMETRIC_RMS = 0.5          # a parametric shape must also fit tightly: RMS <= this x voxel
+_PARAMETRIC = ("sphere", "cylinder", "box", "revolution")
 FREE_CARVE = 0.01             # carve a candidate when more than this share of it is known-free
 # Residual weights inside a tier: a simpler shape wins unless clearly worse (a bottle fits a
 # cylinder, but a surface of revolution better).
 _COMPLEXITY = {"plugin": 0.8, "sphere": 1.0, "cylinder": 1.0, "box": 1.0, "revolution": 1.25,
-               "closing": 1.5, "support": 1.5}
-METHODS = ("plugin", "sphere", "cylinder", "box", "revolution", "closing", "support")
+               "closing": 1.5, "mirror": 1.5, "support": 1.5}
+METHODS = ("plugin", "sphere", "cylinder", "box", "revolution", "closing", "mirror", "support")
 
 
 @dataclass
@@ -137,7 +141,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
         return _unchanged(partial, "skipped", f"tiny partial: {what}", tolerance=tol,
                           seconds=time.perf_counter() - t0)
     from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
-    from .freespace import check_cameras, known_free
+    from .freespace import cameras_seeing, check_cameras, known_free
     from .meshops import is_solid, solidify
     from .support import normalise_planes, planes_from_background, support_below
 
@@ -155,8 +159,14 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     planes += planes_from_background(background, points, reach=2.0 * extent)
     support = support_below(planes, points, reach=1.5 * extent + 3 * tol)
     blocking = blocking_planes(planes, points, tol)
+    # Only what is near the object matters: cameras that see its surroundings, neighbours whose
+    # bounds come within one object extent (the export pipeline passes all of them).
+    lo, hi = points.min(0) - extent, points.max(0) + extent
+    cams = cameras_seeing(cams, lo, hi)
     free_fn = (lambda q: known_free(q, cams, 2 * tol)) if cams else None
-    obstacles = [solidify(m, tol) for m in (context.get("neighbours") or []) if m is not None and len(m.faces)]
+    near = [m for m in (context.get("neighbours") or []) if m is not None and len(m.faces)
+            and not ((m.bounds[1] < lo).any() or (m.bounds[0] > hi).any())]
+    obstacles = [solidify(m, tol) for m in near]
     if background is not None and is_solid(background):
         obstacles.append(background)
 
@@ -179,7 +189,14 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
         if coverage >= 0.6 or forced == "closing":
             yield [("closing", lambda: closing.poisson_closing(
                 points, closing.oriented_normals(points, partial, spacing or tol), tol))]
-        yield [("support", lambda: support_closing(points, tol, support, free_fn))]
+        def _mirror():
+            planes_m, stats = symmetry.mirror_planes(points, tol, support, free_fn)
+            if not planes_m:
+                return None, {**stats, "reason": "no mirror plane with agreeing, uncontradicted halves"}
+            return support_closing(symmetry.mirrored_points(points, planes_m), 0.5 * tol, support, free_fn,
+                                   keep=points), stats
+        yield [("mirror", _mirror)]
+        yield [("support", lambda: support_closing(points, 0.5 * tol, support, free_fn))]
 
     candidates: dict[str, dict] = {}
     chosen = None
@@ -216,9 +233,12 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
             from .coverage import fit_quality
 
             rms, inl = fit_quality(mesh, points, tol)
-            ok = inl >= ACCEPT_INLIERS or forced == name
+            ok = inl >= ACCEPT_INLIERS and (name not in _PARAMETRIC or rms <= PARAMETRIC_RMS * tol)
+            ok = ok or forced == name
             candidates[name] = {"accepted": bool(ok), "fit_rms": rms, "inliers": inl, **stats,
-                                "why": "" if ok else f"only {inl:.0%} of points within {tol * 1000:.1f} mm"}
+                                "why": "" if ok else (f"only {inl:.0%} of points within {tol * 1000:.1f} mm"
+                                                     if inl < ACCEPT_INLIERS else
+                                                     f"RMS {rms * 1000:.1f} mm > {PARAMETRIC_RMS:g} voxel")}
             if name == "support":
                 fallback = (name, mesh, rms, inl)
             if ok and (best is None or rms * _COMPLEXITY[name] < best[2] * _COMPLEXITY[best[0]]):

@@ -32,6 +32,26 @@ def check_cameras(cameras, depths) -> list[tuple[np.ndarray, np.ndarray, int, in
     return out
 
 
+def cameras_seeing(cameras, lo: np.ndarray, hi: np.ndarray):
+    """The cameras whose image contains some corner or the centre of the box [lo, hi] in front of
+    them: only those can say anything about the object's surroundings (a scan has hundreds)."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners = np.concatenate([corners, [0.5 * (lo + hi)]])
+    keep = []
+    for cam in cameras:
+        K, c2w, w, h, _ = cam
+        pc = (corners - c2w[:3, 3]) @ c2w[:3, :3]
+        z = pc[:, 2]
+        front = z > 1e-6
+        if not front.any():
+            continue
+        u = K[0, 0] * pc[front, 0] / z[front] + K[0, 2]
+        v = K[1, 1] * pc[front, 1] / z[front] + K[1, 2]
+        if ((u >= 0) & (u < w) & (v >= 0) & (v < h)).any():
+            keep.append(cam)
+    return keep
+
+
 def known_free(points: np.ndarray, cameras, tolerance: float) -> np.ndarray:
     """points [Q, 3] world; cameras from `check_cameras`. Returns [Q] bool: seen empty by a camera."""
     points = np.asarray(points, dtype=np.float64)

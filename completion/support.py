@@ -80,9 +80,11 @@ def support_below(planes, points: np.ndarray, reach: float):
     return best
 
 
-def support_closing(points: np.ndarray, pitch: float, support, free_fn=None):
-    """Closed mesh from observed points [P, 3]: columns down to `support` (n, d) (or the convex hull
-    when None), minus cells that free_fn(centres [Q,3]) -> [Q] bool says were seen empty."""
+def support_closing(points: np.ndarray, pitch: float, support, free_fn=None, keep=None):
+    """Closed mesh from points [P, 3]: columns down to `support` (n, d) (or the convex hull when
+    None), minus cells that free_fn(centres [Q,3]) -> [Q] bool says were seen empty, except cells
+    holding a `keep` point [K, 3] (default: all points; pass the observed ones when `points` also
+    holds inferred ones)."""
     from scipy import ndimage
     from scipy.spatial import ConvexHull, Delaunay
 
@@ -121,6 +123,8 @@ def support_closing(points: np.ndarray, pitch: float, support, free_fn=None):
         cand = np.flatnonzero(flat)
         flat[cand[free_fn(centres[cand])]] = False
         occ = flat.reshape(shape)
+        if keep is not None:
+            idx = np.clip(np.floor((keep - origin) / pitch + 0.5).astype(int), 0, np.array(shape) - 1)
         occ[tuple(idx.T)] = True    # observed surface cells stay
     occ = ndimage.binary_fill_holes(occ)
     return occupancy_to_mesh(occ, origin, pitch)

@@ -84,3 +84,69 @@ def fit_revolution(points: np.ndarray, tolerance: float, support=None):
     T[:3, 3] = R @ np.array([c2[0], c2[1], 0.0])
     mesh.apply_transform(T)
     return mesh, stats
+
+
+# Reflective symmetry -----------------------------------------------------------------------------
+# A mirror plane is credible when the mirrored observation lands on observed surface where both
+# sides were seen (agreement) and never in space a camera saw empty (contradiction). The planes are
+# vertical when the object stands on a support (man-made objects are symmetric about vertical
+# planes), else spread over all directions. Up to two planes at least 30 deg apart are used, and
+# their composition, so an object seen from one corner gets its three hidden quarters.
+_MIN_AGREEMENT = 0.3
+_MAX_CONTRADICTION = 0.05
+
+
+def _reflect(points: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+    return points - 2.0 * (points @ n - d)[:, None] * n
+
+
+def mirror_planes(points: np.ndarray, tolerance: float, support=None, free_fn=None,
+                  max_points: int = 1500, seed: int = 0):
+    """Credible mirror planes of points [P, 3]. Returns (list of (n [3], d, agreement), stats)."""
+    from scipy.spatial import cKDTree
+
+    from .coverage import fibonacci_directions
+
+    rng = np.random.default_rng(seed)
+    sub = points if len(points) <= max_points else points[rng.choice(len(points), max_points, replace=False)]
+    tree = cKDTree(points)
+    if support is not None:
+        th = np.radians(np.arange(0.0, 180.0, 5.0))
+        normals = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], 1)
+    else:
+        normals = fibonacci_directions(128)
+        normals = normals[normals[:, 2] >= 0]
+    found = []
+    for n in normals:
+        u = sub @ n
+        best = (-1.0, 0.0)
+        for d in np.linspace(u.min(), u.max(), 25)[1:-1]:
+            m = _reflect(sub, n, d)
+            dist, _ = tree.query(m, k=1, distance_upper_bound=1.5 * tolerance)
+            agree = float(np.isfinite(dist).mean())
+            if agree > best[0]:
+                best = (agree, float(d))
+        found.append((best[0], n, best[1]))
+    found.sort(key=lambda f: -f[0])
+    planes = []
+    for agree, n, d in found:
+        if agree < _MIN_AGREEMENT or len(planes) == 2:
+            break
+        if any(abs(n @ q[0]) > np.cos(np.radians(30.0)) for q in planes):
+            continue
+        if free_fn is not None and free_fn(_reflect(sub, n, d)).mean() > _MAX_CONTRADICTION:
+            continue
+        planes.append((n, d, agree))
+    stats = {"mirror_planes": len(planes), "agreement": [round(p[2], 3) for p in planes]}
+    return planes, stats
+
+
+def mirrored_points(points: np.ndarray, planes) -> np.ndarray:
+    """points [P, 3] with their images under each plane and under the composition of two."""
+    out = [points]
+    for n, d, _ in planes:
+        out.append(_reflect(points, n, d))
+    if len(planes) == 2:
+        (n1, d1, _), (n2, d2, _) = planes
+        out.append(_reflect(_reflect(points, n1, d1), n2, d2))
+    return np.concatenate(out)
