@@ -1,0 +1,83 @@
+"""psimap.sim.check_mjcf: load failure, penetration nudge, settle drift, ball primitive vs hull."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from psimap import PsimapError
+from psimap.sim.check import check_mjcf
+
+BOX = """<mujoco><compiler angle="radian"/><option timestep="0.002"/><worldbody>
+<geom name="floor" type="plane" size="0 0 0.05"/>
+<body name="box" pos="0 0 {z}"><freejoint/>
+<geom type="box" size="0.1 0.1 0.05" mass="1"/></body>
+{extra}</worldbody></mujoco>"""
+
+
+def _write(tmp_path, text, name="scene.xml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_resting_box_passes(tmp_path):
+    r = check_mjcf(_write(tmp_path, BOX.format(z=0.05, extra="")))
+    assert r["passed"], r["failures"]
+    assert r["bodies"] == 1 and r["nudges"] == {}
+    assert r["min_contact_dist"] >= -1e-3
+    assert r["drift"]["box"] < 1e-3
+    assert r["sim_seconds_per_wall_second"] > 0
+
+
+def test_penetration_is_nudged_and_reported(tmp_path):
+    p = _write(tmp_path, BOX.format(z=0.04, extra=""))      # 1 cm into the floor
+    r = check_mjcf(p)
+    assert r["passed"], r["failures"]
+    assert r["nudges"]["box"] == pytest.approx(0.01, abs=1.5e-3)
+    assert r["min_contact_dist"] >= -1e-3
+    assert 'pos="0 0 0.05' in p.read_text()                # the file itself was fixed
+    r2 = check_mjcf(_write(tmp_path, BOX.format(z=0.04, extra=""), "b.xml"), resolve=False)
+    assert not r2["passed"] and "penetration" in r2["failures"][0]
+
+
+def test_falling_object_is_unsupported_not_resting(tmp_path):
+    r = check_mjcf(_write(tmp_path, BOX.format(z=0.5, extra="")))
+    assert r["unsupported"] == ["box"] and "box" not in r["drift"]
+
+
+def test_toppling_object_fails_drift(tmp_path):
+    # a thin pole standing on one edge, tilted 0.2 rad: it falls over
+    pole = BOX.format(z="0.2960", extra="").replace('size="0.1 0.1 0.05"', 'size="0.01 0.01 0.3"')
+    pole = pole.replace('pos="0 0 0.2960"', 'pos="0 0 0.2960" euler="0.2 0 0"')
+    r = check_mjcf(_write(tmp_path, pole))
+    assert "box" in r["drift"] and r["drift"]["box"] > 0.05
+    assert not r["passed"] and any("moved more than" in f for f in r["failures"])
+
+
+def test_load_failure_is_an_error(tmp_path):
+    with pytest.raises(PsimapError, match="MuJoCo could not load"):
+        check_mjcf(_write(tmp_path, "<mujoco><worldbody><geom type='mesh' mesh='nope'/></worldbody></mujoco>"))
+    with pytest.raises(PsimapError, match="not found"):
+        check_mjcf(tmp_path / "missing.xml")
+
+
+def test_ball_sphere_primitive_stays_put_hull_rolls(tmp_path):
+    """The issue's measurement: a ball's faceted convex hull rolls, a sphere primitive stays."""
+    from psimap.exporters.objects import build_object
+    from psimap.exporters.pipeline import export_scene
+
+    ball = trimesh.creation.icosphere(1, radius=0.05)          # coarse facets, like a scan
+    ball.apply_transform(trimesh.transformations.rotation_matrix(0.3, [1, 1, 0]))
+    ball.apply_translation(-ball.bounds[0] * [0, 0, 1])
+    obj = build_object(ball, "ball", 1, completion="none", decimation_budget=0.0)
+    assert obj.collision.kind == "sphere"
+    r = export_scene([obj], tmp_path / "prim", "mjcf")
+    assert r["check"]["passed"] and r["check"]["drift"]["ball_1"] < 2e-3
+    obj_hull = build_object(ball, "ball", 1, completion="none", decimation_budget=0.0)
+    from psimap.exporters.collision import Collision, limit_hull_vertices
+
+    obj_hull.collision = Collision("hull", 0.0, 0.0, parts=[limit_hull_vertices(obj_hull.mesh)])
+    obj_hull.physics.com = np.asarray(obj_hull.mesh.center_mass)
+    r2 = export_scene([obj_hull], tmp_path / "hull", "mjcf")
+    assert r2["check"]["drift"]["ball_1"] > r["check"]["drift"]["ball_1"]
