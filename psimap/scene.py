@@ -152,11 +152,21 @@ class Scene:
         """
         from tqdm import tqdm
 
+        import torch
+
         idx = range(len(self.cameras["names"])) if cameras is None else cameras
         depths, colors, Ks, c2ws = [], [], [], []
-        for i in tqdm(list(idx), desc="render", disable=not progress, leave=False):
-            K, c2w, w, h = self.camera(int(i))
-            out = self.render(int(i))
+        threads = torch.get_num_threads()
+        # the per-view tensors are small: torch's thread pool only adds spin-waiting on a busy CPU
+        torch.set_num_threads(1)
+        try:
+            outs = []
+            for i in tqdm(list(idx), desc="render", disable=not progress, leave=False):
+                outs.append((int(i), self.render(int(i))))
+        finally:
+            torch.set_num_threads(threads)
+        for i, out in outs:
+            K, c2w, w, h = self.camera(i)
             d = (out.median_depth if depth == "median" else out.depth).numpy()
             a = out.alpha.numpy()
             depths.append(np.where((a >= min_alpha) & np.isfinite(d), d, 0).astype(np.float32))

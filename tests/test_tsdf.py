@@ -133,3 +133,21 @@ def test_clean_components_removes_floaters():
     out = clean_components(m, 0.5)
     assert len(out.faces) == len(big.faces)
     assert len(clean_components(m, 0.01).faces) == len(m.faces)
+
+
+def test_scene_mesh_of_surfels_on_known_meshes(two_objects):
+    """Scene.mesh(): render the surfels of scene_from_meshes into every camera and fuse them."""
+    import torch
+
+    from psimap.scene import scene_from_meshes
+
+    sphere, box, both, cams, _, _, _ = two_objects
+    cams = cams[::2]
+    cameras = {"K": np.stack([K] * len(cams)), "c2w": np.stack(cams), "width": W, "height": H,
+               "names": [f"c{i}" for i in range(len(cams))]}
+    scene = scene_from_meshes([sphere, box], [1, 2], [3, 4], [], cameras)
+    assert torch.equal(torch.unique(scene.instance_ids()), torch.tensor([1, 2]))
+    mesh = scene.mesh()
+    vox = mesh.metadata["tsdf"]["voxel_size"]
+    acc, comp = chamfer(mesh, both)
+    assert len(mesh.faces) > 500 and acc < vox, (acc, comp, vox)

@@ -296,10 +296,12 @@ def _isatty() -> bool:
 
 
 def train(data, cfg: TrainConfig | None = None, *, resume=None, progress: bool | None = None,
-          log=None):
+          log=None, callback=None):
     """Train a surfel map on `data` (a folder path or a FrameSequence); returns a psimap.scene.Scene.
 
     resume: a Scene or checkpoint path to continue from (its surfels; cfg.iters more steps).
+    callback: called as callback(step, params, elapsed_s) after every step (benchmarks snapshot
+    `surfel_values(params)` with it).
     Raises PsimapError (Diverged) when a loss term or gradient stays non-finite; never returns NaN.
     """
     threads = torch.get_num_threads()
@@ -307,12 +309,12 @@ def train(data, cfg: TrainConfig | None = None, *, resume=None, progress: bool |
     # one thread is both faster in practice and bit-reproducible
     torch.set_num_threads(1)
     try:
-        return _train(data, cfg, resume=resume, progress=progress, log=log)
+        return _train(data, cfg, resume=resume, progress=progress, log=log, callback=callback)
     finally:
         torch.set_num_threads(threads)
 
 
-def _train(data, cfg, *, resume, progress, log):
+def _train(data, cfg, *, resume, progress, log, callback):
     from tqdm import tqdm
 
     from psimap.scene import Scene, load_scene
@@ -429,6 +431,8 @@ def _train(data, cfg, *, resume, progress, log):
                             "time_s": time.perf_counter() - t_start})
             bar.set_postfix(loss=f"{ema['total']:.4f}", surfels=int(params["means"].shape[0]))
         bar.update(1)
+        if callback is not None:
+            callback(steps_before + step + 1, params, time.perf_counter() - t_start)
     bar.close()
     # final prune of surfels that ended up invisible (opacity faded) or degenerate
     with torch.no_grad():

@@ -1,0 +1,222 @@
+"""Geometry benchmark (issue 5): psimap vs TSDF of the raw noisy depth vs training without the SOGMM
+prior, on synthetic scenes with exact ground truth, plus the real 7-Scenes chess frames.
+
+Reports accuracy, completeness, Chamfer-L1, F1@5 cm, time and surfel count in one run; plots
+iterations vs F1 / time and TSDF voxel size vs F1 / time (bench_out/geometry_*.png); appends the
+tables to benchmarks/RESULTS.md.
+
+    python benchmarks/geometry.py                 # demo size + two other sizes + chess
+    python benchmarks/geometry.py --quick         # small scene only, few iterations
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import append_results, markdown_table  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "bench_out"
+CHESS = ROOT.parent / "shared" / "data" / "7scenes-chess"
+
+
+def _geo(mesh, data, samples):
+    from psimap.metrics.evaluate import evaluate_geometry
+
+    return evaluate_geometry(mesh, data, samples=samples)
+
+
+def raw_tsdf(data, voxel=None):
+    """TSDF of the observed (noisy) depth and colour of every frame."""
+    from psimap.data import load
+    from psimap.geometry.tsdf import fuse_tsdf
+
+    seq = load(data)
+    fr = [seq[i] for i in range(len(seq))]
+    t = time.perf_counter()
+    mesh = fuse_tsdf([f.depth for f in fr], [f.K for f in fr], [f.c2w for f in fr],
+                     colors=[f.rgb for f in fr], voxel_size=voxel)
+    return mesh, time.perf_counter() - t
+
+
+def run_size(label, frames, width, height, iters, seed, samples, curves: bool, rows, curve_data):
+    import torch
+
+    from psimap.data.synthetic import generate
+    from psimap.scene import Scene
+    from psimap.train.config import TrainConfig
+    from psimap.train.trainer import surfel_values, train
+
+    data = OUT / f"geometry_scene_{frames}x{width}x{height}_s{seed}"
+    t = time.perf_counter()
+    generate(data, seed, frames=frames, width=width, height=height, progress=False)
+    print(f"[{label}] generated {data} in {time.perf_counter() - t:.1f} s", flush=True)
+
+    mesh, secs = raw_tsdf(data)
+    m = _geo(mesh, data, samples)
+    rows.append([label, "TSDF of raw depth", m["accuracy"] * 100, m["completeness"] * 100,
+                 m["chamfer_l1"] * 100, m["f1"], secs, "-"])
+    print(rows[-1], flush=True)
+
+    for name, prior in (("psimap (SOGMM prior)", True), ("2DGS losses, no prior", False)):
+        snaps = {}
+        marks = set(np.unique(np.linspace(iters / 5, iters, 5).round().astype(int)).tolist()) if (
+            curves and prior) else set()
+
+        def cb(step, params, elapsed):
+            if step in marks:
+                snaps[step] = (surfel_values(params), elapsed)
+
+        cfg = TrainConfig(iters=iters, seed=seed, use_prior=prior)
+        t = time.perf_counter()
+        scene = train(str(data), cfg, callback=cb, log=lambda s: print("   ", s, flush=True))
+        t_train = time.perf_counter() - t
+        t = time.perf_counter()
+        mesh = scene.mesh()
+        t_mesh = time.perf_counter() - t
+        m = _geo(mesh, data, samples)
+        rows.append([label, name, m["accuracy"] * 100, m["completeness"] * 100, m["chamfer_l1"] * 100,
+                     m["f1"], t_train + t_mesh, len(scene)])
+        print(rows[-1], f"(train {t_train:.1f} s, mesh {t_mesh:.1f} s)", flush=True)
+        if curves and prior:
+            it_curve = []
+            for step in sorted(snaps):
+                sv, elapsed = snaps[step]
+                sc = Scene(sv, cameras=scene.cameras)
+                mm = _geo(sc.mesh(), data, samples)
+                it_curve.append((step, elapsed, mm["f1"], mm["chamfer_l1"]))
+            curve_data["iters"] = it_curve
+            base = mesh.metadata["tsdf"]["voxel_size"]
+            vox_curve = []
+            depths = scene.rendered_depths()
+            from psimap.geometry.tsdf import fuse_tsdf
+
+            for f in (0.5, 0.75, 1.0, 1.5, 2.0):
+                t = time.perf_counter()
+                vm = fuse_tsdf(depths[0], depths[2], depths[3], colors=depths[1], voxel_size=base * f)
+                tv = time.perf_counter() - t
+                mm = _geo(vm, data, samples)
+                vox_curve.append((base * f, tv, mm["f1"], mm["chamfer_l1"]))
+            curve_data["voxel"] = vox_curve
+            torch.save({"iters": it_curve, "voxel": vox_curve}, OUT / "geometry_curves.pt")
+
+
+def plot_curves(curve_data):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    for key, xlabel, fname in (("iters", "training iterations", "geometry_iters.png"),
+                               ("voxel", "TSDF voxel size (m)", "geometry_voxel.png")):
+        c = curve_data.get(key)
+        if not c:
+            continue
+        x = [r[0] for r in c]
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+        ax.plot(x, [r[2] for r in c], "o-", color="C0")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("F1 @ 5 cm", color="C0")
+        ax2 = ax.twinx()
+        ax2.plot(x, [r[1] for r in c], "s--", color="C1")
+        ax2.set_ylabel("time (s)", color="C1")
+        ax.set_title(f"psimap geometry: {xlabel} vs F1 and time")
+        fig.tight_layout()
+        fig.savefig(OUT / fname, dpi=110)
+        plt.close(fig)
+
+
+def run_chess(iters, seed, n_frames, rows):
+    """Real frames: psimap mesh vs the raw-depth TSDF mesh (no ground truth exists)."""
+    from psimap.data import load
+    from psimap.data.frames import FrameSequence
+    from psimap.metrics.geometry import geometry_metrics
+    from psimap.train.config import TrainConfig
+    from psimap.train.trainer import train
+
+    seq = load(CHESS)
+    idx = np.linspace(0, len(seq) - 1, min(n_frames, len(seq))).round().astype(int)
+    sub = FrameSequence(loader=lambda i: seq[int(idx[i])], count=len(idx), classes=seq.classes,
+                        root=str(CHESS))
+    frames = [sub[i] for i in range(len(sub))]
+    from psimap.geometry.tsdf import fuse_tsdf
+
+    t = time.perf_counter()
+    raw = fuse_tsdf([f.depth for f in frames], [f.K for f in frames], [f.c2w for f in frames],
+                    colors=[f.rgb for f in frames])
+    t_raw = time.perf_counter() - t
+    t = time.perf_counter()
+    scene = train(sub, TrainConfig(iters=iters, seed=seed), log=lambda s: print("   ", s, flush=True))
+    t_train = time.perf_counter() - t
+    t = time.perf_counter()
+    mesh = scene.mesh()
+    t_mesh = time.perf_counter() - t
+    m = geometry_metrics(mesh, raw, threshold=0.05, max_samples=100_000, seed=0)
+    rows.append([f"chess ({len(frames)} frames, {frames[0].width}x{frames[0].height})", iters,
+                 m["accuracy"] * 100, m["completeness"] * 100, m["chamfer_l1"] * 100, m["f1"],
+                 t_raw, t_train, t_mesh, len(scene)])
+    print(rows[-1], flush=True)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small scene, few iterations, no chess")
+    ap.add_argument("--iters", type=int, default=0, help="training iterations (0 = config default)")
+    ap.add_argument("--sizes", default="", help="comma list FRAMESxWxH (default: demo size and two others; none = skip)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--samples", type=int, default=100_000, help="max points sampled per mesh")
+    ap.add_argument("--chess-frames", type=int, default=60)
+    ap.add_argument("--no-chess", action="store_true")
+    ap.add_argument("--no-append", action="store_true", help="print tables only")
+    args = ap.parse_args(argv)
+    from psimap.train.config import TrainConfig
+
+    OUT.mkdir(exist_ok=True)
+    iters = args.iters or (150 if args.quick else TrainConfig().iters)
+    sizes = args.sizes or ("20x80x60" if args.quick else "60x160x120,30x80x60,60x240x180")
+    rows, curves = [], {}
+    for k, s in enumerate([] if sizes == "none" else sizes.split(",")):
+        f, w, h = (int(v) for v in s.split("x"))
+        run_size(f"{f} frames {w}x{h}", f, w, h, iters, args.seed, args.samples, k == 0, rows, curves)
+    plot_curves(curves)
+    header = ["scene", "method", "accuracy (cm)", "completeness (cm)", "Chamfer-L1 (cm)", "F1@5cm",
+              "time (s)", "surfels"]
+    table = markdown_table(header, rows)
+    notes = [f"{iters} training iterations; time = training + mesh extraction (TSDF: fusion only); "
+             f"F1 at 5 cm, completeness on camera-seen GT (DESIGN.md metrics)."]
+    if curves.get("iters"):
+        notes.append("Iterations vs F1 / time (first scene): " + ", ".join(
+            f"{s}: F1 {f1:.3f} @ {t:.0f} s" for s, t, f1, _ in curves["iters"]) +
+            " — plot bench_out/geometry_iters.png")
+    if curves.get("voxel"):
+        notes.append("TSDF voxel vs F1 / time: " + ", ".join(
+            f"{v * 100:.1f} cm: F1 {f1:.3f} in {t:.1f} s" for v, t, f1, _ in curves["voxel"]) +
+            " — plot bench_out/geometry_voxel.png")
+    chess_rows = []
+    if not (args.quick or args.no_chess) and CHESS.exists():
+        run_chess(iters, args.seed, args.chess_frames, chess_rows)
+    if not rows:
+        pass
+    elif args.no_append:
+        print(table)
+        print("\n".join(notes))
+    else:
+        append_results("Geometry: psimap vs raw-depth TSDF vs no-prior training", table, "\n\n".join(notes))
+    if chess_rows:
+        t2 = markdown_table(["frames", "iters", "accuracy vs raw TSDF (cm)", "completeness (cm)",
+                             "Chamfer-L1 (cm)", "F1@5cm", "raw TSDF (s)", "train (s)", "mesh (s)",
+                             "surfels"], chess_rows)
+        note = "Real 7-Scenes chess frames: distances between the psimap mesh and the raw-depth TSDF mesh."
+        if args.no_append:
+            print(t2)
+        else:
+            append_results("Geometry: 7-Scenes chess, psimap mesh vs raw-depth TSDF", t2, note)
+
+
+if __name__ == "__main__":
+    main()
