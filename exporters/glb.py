@@ -17,12 +17,12 @@ def write_glb(objects, path: str | Path, *, background=None, nudges: dict | None
     scene = trimesh.Scene()
     z_up_to_y_up = trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0])
     for o in ([background] if background is not None else []) + list(objects):
-        v = np.asarray(o.mesh.vertices, np.float64) + np.array([0, 0, nudges.get(o.name, 0.0)])
+        v = np.asarray(o.visual.vertices, np.float64) + np.array([0, 0, nudges.get(o.name, 0.0)])
         if o.uv is not None and o.texture is not None:
-            m = textured_mesh(v, np.asarray(o.mesh.faces), o.uv, o.texture, f"{o.name}_material")
+            m = textured_mesh(v, np.asarray(o.visual.faces), o.uv, o.texture, f"{o.name}_material")
         else:
             rgb = o.vertex_rgb if o.vertex_rgb is not None else np.full((len(v), 3), 0.6)
-            m = trimesh.Trimesh(v, o.mesh.faces, vertex_colors=(np.clip(rgb, 0, 1) * 255).astype(np.uint8),
+            m = trimesh.Trimesh(v, o.visual.faces, vertex_colors=(np.clip(rgb, 0, 1) * 255).astype(np.uint8),
                                 process=False)
         scene.add_geometry(m, node_name=o.name, geom_name=o.name, transform=z_up_to_y_up)
     path = Path(path)

@@ -63,13 +63,13 @@ def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float 
 
     def visual_assets(o, origin: np.ndarray) -> dict:
         name = o.name
-        v = np.asarray(o.mesh.vertices, np.float64) - origin
+        v = np.asarray(o.visual.vertices, np.float64) - origin
         if o.uv is not None and o.texture is not None:
-            write_textured_obj(v, o.mesh.faces, o.uv, o.texture, assets / f"{name}.obj", f"{name}")
+            write_textured_obj(v, o.visual.faces, o.uv, o.texture, assets / f"{name}.obj", f"{name}")
             ET.SubElement(asset, "texture", name=f"{name}_texture", type="2d", file=f"{name}.png")
             ET.SubElement(asset, "material", name=f"{name}_material", texture=f"{name}_texture")
         else:
-            write_textured_obj(v, o.mesh.faces, None, None, assets / f"{name}.obj", name)
+            write_textured_obj(v, o.visual.faces, None, None, assets / f"{name}.obj", name)
             rgb = np.clip(np.asarray(o.vertex_rgb).mean(axis=0), 0, 1) if o.vertex_rgb is not None \
                 else np.array([0.6, 0.6, 0.6])
             ET.SubElement(asset, "material", name=f"{name}_material", rgba=_f([*rgb, 1.0]))

@@ -24,9 +24,10 @@ class SceneObject:
     static: bool = False                    # background: no mass, no freejoint
     collision: object | None = None         # psimap.exporters.collision.Collision
     physics: object | None = None           # psimap.exporters.physics.Physics
-    uv: np.ndarray | None = None            # [V, 2] per mesh vertex
+    visual_mesh: object | None = None       # seam-split copy of mesh that uv / vertex_rgb index
+    uv: np.ndarray | None = None            # [V, 2] per visual_mesh vertex
     texture: np.ndarray | None = None       # uint8 [S, S, 3]
-    vertex_rgb: np.ndarray | None = None    # [V, 3] float fallback colours
+    vertex_rgb: np.ndarray | None = None    # [V, 3] float fallback colours (per visual vertex)
     texture_source: str = "none"            # "views" | "mesh" | "vertex" | "none"
     texture_coverage: float = 0.0           # fraction of texels some view saw
     faces_before: int = 0
@@ -46,6 +47,11 @@ class SceneObject:
         if safe[0].isdigit():
             safe = "c" + safe
         return f"{safe}_{int(self.instance_id)}"
+
+    @property
+    def visual(self):
+        """The mesh the writers draw: the UV'd, seam-split mesh when textured, else `mesh`."""
+        return self.mesh if self.visual_mesh is None else self.visual_mesh
 
     @property
     def mass(self) -> float:
@@ -184,7 +190,7 @@ def _texture(obj: SceneObject, m, views, source_textured, vertex_rgb, original, 
             else fallback
     try:
         v, f, uv, vmap = T.unwrap(m)
-    except Exception:
+    except Exception:   # xatlas fails on some degenerate charts: colour per vertex instead
         obj.mesh = m
         obj.vertex_rgb = fallback
         obj.texture_source = "vertex" if fallback is not None else "none"
@@ -204,7 +210,8 @@ def _texture(obj: SceneObject, m, views, source_textured, vertex_rgb, original, 
         img[rows, cols] = np.einsum("pk,pkd->pd", bary, fb[f[fid]])
         filled[rows, cols] = True
         obj.texture, obj.texture_source = T._to_uint8(T._dilate(img, filled)), "vertex"
-    obj.mesh = trimesh.Trimesh(v, f, process=False)
+    obj.mesh = m
+    obj.visual_mesh = trimesh.Trimesh(v, f, process=False)
     obj.uv = uv if obj.texture is not None else None
     obj.vertex_rgb = fb
 

@@ -131,7 +131,7 @@ def _write_meshes(objs, background, root: Path) -> dict:
     (root / "collision").mkdir(parents=True, exist_ok=True)
     files = {}
     for o in objs + ([background] if background is not None else []):
-        write_textured_obj(np.asarray(o.mesh.vertices, np.float64), o.mesh.faces, o.uv, o.texture,
+        write_textured_obj(np.asarray(o.visual.vertices, np.float64), o.visual.faces, o.uv, o.texture,
                            root / "meshes" / f"{o.name}.obj", o.name, vertex_rgb=o.vertex_rgb)
         entry = {"mesh": f"meshes/{o.name}.obj", "collision": []}
         if o.collision is not None:

@@ -70,8 +70,8 @@ def _visual(stage, parent: str, obj, origin: np.ndarray, assets: Path, rel_asset
     from PIL import Image
     from pxr import Sdf, UsdGeom, UsdShade, Vt
 
-    v = np.asarray(obj.mesh.vertices, np.float64) - origin
-    mesh = _mesh_prim(stage, f"{parent}/visual", v, np.asarray(obj.mesh.faces))
+    v = np.asarray(obj.visual.vertices, np.float64) - origin
+    mesh = _mesh_prim(stage, f"{parent}/visual", v, np.asarray(obj.visual.faces))
     tex_file = None
     if obj.uv is not None and obj.texture is not None:
         st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
