@@ -256,3 +256,29 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
         if bg.skipped:
             bg = None
     return objs, bg
+
+
+def object_from_scan(path, label: str, instance_id: int, *, place_on_floor: bool = True,
+                     offset=(0.0, 0.0, 0.0), **kw) -> SceneObject:
+    """A SceneObject from a scanned, textured mesh file (OBJ/PLY/GLB; e.g. a YCB `textured.obj`).
+
+    The colour is transferred from the scan's own texture onto the new UV atlas. place_on_floor
+    moves the scan so its lowest point is at z = 0, then by `offset` (metres). Other keyword
+    arguments go to build_object (completion defaults to "none": a scan is complete).
+    """
+    import trimesh
+
+    from psimap import PsimapError
+
+    try:
+        src = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as e:
+        raise PsimapError(f"cannot read mesh {path}: {e}") from None
+    if not isinstance(src, trimesh.Trimesh) or len(src.faces) == 0:
+        raise PsimapError(f"{path}: no triangles")
+    shift = np.asarray(offset, np.float64).copy()
+    if place_on_floor:
+        shift[2] -= float(src.bounds[0, 2])
+    src.apply_translation(shift)
+    kw.setdefault("completion", "none")
+    return build_object(src, label, instance_id, source_textured=src, **kw)
