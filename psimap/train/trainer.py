@@ -104,7 +104,7 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
             depth = np.where(depth <= cfg.max_depth, depth, 0.0)
         rgb = np.asarray(f.rgb, np.float32)
         if not np.isfinite(rgb).all() or not np.isfinite(f.c2w).all():
-            skipped.append(f.name or str(i))
+            skipped.append(f.name or str(i))       # non-finite colour or pose
             continue
         if not np.any(depth > 0):
             skipped.append(f.name or str(i))
@@ -115,7 +115,7 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
         r2, d2, K2 = downscale(r, d, K, 2)
         low.append(_to_train_frame(f.name or str(i), r2, d2, K2, f.c2w))
     if skipped:
-        log(f"skipping {len(skipped)} frame(s) without valid depth: {', '.join(skipped[:5])}"
+        log(f"skipping {len(skipped)} frame(s) without valid depth (or with NaN colour / pose): {', '.join(skipped[:5])}"
             f"{' ...' if len(skipped) > 5 else ''}")
     if not frames:
         raise PsimapError("no frame has valid depth: nothing to train on")
@@ -323,6 +323,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
     log = log or (lambda msg: print(msg, file=sys.stderr))
     progress = _isatty() if progress is None else progress
     t_start = time.perf_counter()
+    cpu_start = time.process_time()
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
@@ -446,7 +447,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
     log(f"trained {iters} steps in {seconds:.1f} s: loss {first_loss['total'] if first_loss else float('nan'):.4f} -> "
         f"{loss_end.get('total', float('nan')):.4f}, depth error {depth_err_start * 100:.2f} -> "
         f"{depth_err_end * 100:.2f} cm, {n} surfels (budget {budget})")
-    metrics = {"steps": steps_before + iters, "seconds": seconds, "surfels": n, "budget": budget,
+    # CPU seconds = wall time on an idle machine (training is single-threaded by default)
+    metrics = {"steps": steps_before + iters, "seconds": seconds,
+               "cpu_seconds": time.process_time() - cpu_start, "surfels": n, "budget": budget,
                "sogmm_K": info["sogmm_K"], "n_init": info["n_init"], "prior_area": info["area"],
                "spacing": spacing, "extent": extent,
                "loss_start": first_loss or {}, "loss_end": loss_end, "depth_l1_start": depth_err_start,
