@@ -55,17 +55,25 @@ def blend_tiles(px: torch.Tensor, py: torch.Tensor, T: torch.Tensor, center: tor
                        dim=1)                                               # [B, 3 (x, y, 1), L, 3 (k)]
     p = torch.bmm(xy1, coef.transpose(2, 3).reshape(B, 3, 3 * L)).view(B, P, 3, L)
     p0, p1, p2 = p[:, :, 0], p[:, :, 1], p[:, :, 2]                         # [B, P, L]
-    # |hx|^2 = x^2 |T2|^2 - 2 x T0.T2 + |T0|^2 (and the same for y); only used in the edge-on test.
-    t22 = (T2 * T2).sum(-1)
-    hcoef = torch.stack([torch.stack([t22, -2 * (T0 * T2).sum(-1), (T0 * T0).sum(-1)], 1),
-                         torch.stack([t22, -2 * (T1 * T2).sum(-1), (T1 * T1).sum(-1)], 1)], 1)   # [B, 2, 3, L]
-    hx_sq = torch.bmm(torch.stack([px * px, px, ones], -1), hcoef[:, 0])    # [B, P, L]
-    hy_sq = torch.bmm(torch.stack([py * py, py, ones], -1), hcoef[:, 1])
-    # |p2| > eps |hx||hy| (squared: no sqrt, no gradient singularity); else edge-on.
-    hit = (p2 * p2) > (EDGE_ON_EPS ** 2) * hx_sq * hy_sq
+    with torch.no_grad():
+        # Edge-on test |p2| > eps |hx||hy| (squared: no sqrt). |hx|^2 = x^2 |T2|^2 - 2 x T0.T2 + |T0|^2
+        # (same for y), clamped at 0 against float cancellation; the test itself has no gradient.
+        Td = T.detach()
+        T0d, T1d, T2d = Td[:, :, 0, :], Td[:, :, 1, :], Td[:, :, 2, :]
+        t22 = (T2d * T2d).sum(-1)
+        hxc = torch.stack([t22, -2 * (T0d * T2d).sum(-1), (T0d * T0d).sum(-1)], 1)   # [B, 3, L]
+        hyc = torch.stack([t22, -2 * (T1d * T2d).sum(-1), (T1d * T1d).sum(-1)], 1)
+        pxd, pyd, onesd = px.detach(), py.detach(), ones.detach()
+        hx_sq = torch.bmm(torch.stack([pxd * pxd, pxd, onesd], -1), hxc).clamp(min=0)   # [B, P, L]
+        hy_sq = torch.bmm(torch.stack([pyd * pyd, pyd, onesd], -1), hyc).clamp(min=0)
+        p2d = p2.detach()
+        hit = (p2d * p2d) > (EDGE_ON_EPS ** 2) * hx_sq * hy_sq
     p2s = torch.where(hit, p2, torch.ones_like(p2))
-    u = torch.where(hit, p0 / p2s, torch.zeros_like(p0))
-    v = torch.where(hit, p1 / p2s, torch.zeros_like(p1))
+    # |u|, |v| <= 1 / EDGE_ON_EPS for a true hit; the clamp only guards float32 rounding (an
+    # overflowing u^2 would turn the zero gradient of an invalid hit into NaN).
+    bound = 1.0 / EDGE_ON_EPS
+    u = torch.where(hit, (p0 / p2s).clamp(-bound, bound), torch.zeros_like(p0))
+    v = torch.where(hit, (p1 / p2s).clamp(-bound, bound), torch.zeros_like(p1))
     rho3 = u * u + v * v
     z3 = T[:, None, :, 2, 0] * u + T[:, None, :, 2, 1] * v + T[:, None, :, 2, 2]
     valid3 = hit & (rho3 <= CHI * CHI) & (z3 > near)
