@@ -150,7 +150,11 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     background = context.get("background")
     planes = normalise_planes(context.get("support_planes"), centre)
     cams = check_cameras(context.get("cameras"), context.get("depths"))
-    coverage = directional_coverage(points)
+    from .closing import oriented_normals
+
+    normals = oriented_normals(points, partial, spacing or tol,
+                               viewpoints=[c[1][:3, 3] for c in cams] if cams else None)
+    coverage = directional_coverage(points, normals)
     threshold = float(context.get("coverage_threshold", 0.9))
     if coverage >= threshold and forced == "auto":
         return _unchanged(partial, "none", f"fully observed: coverage {coverage:.2f} >= {threshold:.2f}",
@@ -166,7 +170,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     free_fn = (lambda q: known_free(q, cams, 2 * tol)) if cams else None
     near = [m for m in (context.get("neighbours") or []) if m is not None and len(m.faces)
             and not ((m.bounds[1] < lo).any() or (m.bounds[0] > hi).any())]
-    obstacles = [solidify(m, tol) for m in near]
+    obstacles = [solidify(m, 0.5 * tol) for m in near]
     if background is not None and is_solid(background):
         obstacles.append(background)
 
@@ -188,7 +192,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                ("revolution", lambda: symmetry.fit_revolution(points, tol, support))]
         if coverage >= 0.6 or forced == "closing":
             yield [("closing", lambda: closing.poisson_closing(
-                points, closing.oriented_normals(points, partial, spacing or tol), tol))]
+                points, normals, tol))]
         def _mirror():
             planes_m, stats = symmetry.mirror_planes(points, tol, support, free_fn)
             if not planes_m:

@@ -8,15 +8,19 @@ from __future__ import annotations
 import numpy as np
 
 
-def oriented_normals(points: np.ndarray, partial, spacing: float) -> np.ndarray:
+def oriented_normals(points: np.ndarray, partial, spacing: float, viewpoints=None) -> np.ndarray:
     """Normals [P, 3] for points [P, 3]: from the partial mesh's nearest face when it has faces,
-    else PCA normals flipped away from the points' centre."""
+    else PCA normals flipped towards the nearest viewpoint [V, 3] (camera centres: a seen surface
+    faces its camera), else away from the points' centre."""
     if partial is not None and len(getattr(partial, "faces", [])) > 0:
-        import trimesh
+        import open3d as o3d
 
-        _, _, fid = trimesh.proximity.closest_point(partial, points)
-        n = partial.face_normals[fid]
-        if partial.volume < 0:
+        from .meshops import raycasting_scene
+
+        hit = raycasting_scene(partial).compute_closest_points(
+            o3d.core.Tensor(np.asarray(points, dtype=np.float32)))
+        n = partial.face_normals[hit["primitive_ids"].numpy().astype(np.int64)]
+        if partial.is_watertight and partial.volume < 0:     # inside-out closed mesh
             n = -n
         return n
     import open3d as o3d
@@ -24,12 +28,18 @@ def oriented_normals(points: np.ndarray, partial, spacing: float) -> np.ndarray:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * spacing, max_nn=30))
     n = np.asarray(pcd.normals)
+    if viewpoints is not None and len(viewpoints):
+        from scipy.spatial import cKDTree
+
+        _, j = cKDTree(np.asarray(viewpoints)).query(points, k=1)
+        out = np.asarray(viewpoints)[j] - points
+        return np.where(((n * out).sum(1) < 0)[:, None], -n, n)
     out = points - points.mean(0)
     return np.where(((n * out).sum(1) < 0)[:, None], -n, n)
 
 
 def poisson_closing(points: np.ndarray, normals: np.ndarray, tolerance: float):
-    """Closed mesh from oriented points, or None when Poisson gives no closed surface."""
+    """Closed mesh from oriented points [P, 3] + normals [P, 3], or None when Poisson gives none."""
     import open3d as o3d
 
     from .meshops import as_trimesh, is_solid
@@ -42,10 +52,14 @@ def poisson_closing(points: np.ndarray, normals: np.ndarray, tolerance: float):
     tm = as_trimesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
     if len(tm.faces) == 0:
         return None
-    parts = tm.split(only_watertight=True)
-    if len(parts) == 0:
-        return None
-    tm = max(parts, key=lambda m: abs(m.volume))
-    if tm.volume < 0:
-        tm.invert()
-    return tm if is_solid(tm) else None
+    if is_solid(tm):
+        return tm
+    # Poisson output often carries a few slivers / boundary edges: re-extract a closed surface
+    # from its inside (ray parity over several rays tolerates small holes) at half-voxel pitch.
+    from .meshops import grid_points, inside, occupancy_to_mesh
+
+    pitch = 0.5 * tolerance
+    centres, shape, origin, pitch = grid_points(tm.bounds[0] - pitch, tm.bounds[1] + pitch, pitch)
+    occ = inside(centres, tm).reshape(shape)
+    out = occupancy_to_mesh(occ, origin, pitch)
+    return out if out is not None and is_solid(out) else None

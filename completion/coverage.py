@@ -35,25 +35,31 @@ def point_spacing(points: np.ndarray) -> float:
     return float(np.median(d[:, 1]))
 
 
-def directional_coverage(points: np.ndarray) -> float:
-    """Share of directions from the bounding-box centre of points [P, 3] (axes scaled to the box)
-    that hold observed points."""
+def directional_coverage(points: np.ndarray, normals: np.ndarray | None = None) -> float:
+    """Share of directions d from the bounding-box centre of points [P, 3] that are seen: some
+    observed point lies within the cone around d and, when outward normals [P, 3] are given, faces
+    that way (n·d >= 0.3). The normal test keeps an inner wall seen through an opening (a mug's far
+    inside) from counting as the outside behind it."""
+    from scipy.spatial import cKDTree
+
     if len(points) < 4:
         return 0.0
     centre = 0.5 * (points.min(0) + points.max(0))
-    # In the box-normalised frame a thin object's hidden back face still owns half the directions.
-    half = np.maximum(0.5 * (points.max(0) - points.min(0)), 1e-9)
-    rel = (points - centre) / half
+    rel = points - centre
     norm = np.linalg.norm(rel, axis=1)
-    rel = rel[norm > 1e-9] / norm[norm > 1e-9, None]
+    ok = norm > 1e-9
+    rel = rel[ok] / norm[ok, None]
     if len(rel) == 0:
         return 0.0
     dirs = fibonacci_directions(_N_DIRS)
-    from scipy.spatial import cKDTree
-
-    # Chord length of the cone angle: nearest point direction within it covers the direction.
-    d, _ = cKDTree(rel).query(dirs, k=1)
-    return float((d <= 2 * np.sin(_CONE / 2)).mean())
+    chord = 2 * np.sin(_CONE / 2)
+    if normals is None:
+        d, _ = cKDTree(rel).query(dirs, k=1)
+        return float((d <= chord).mean())
+    nrm = np.asarray(normals, dtype=np.float64)[ok]
+    hits = cKDTree(rel).query_ball_point(dirs, chord)
+    covered = [len(h) > 0 and bool((nrm[h] @ d >= 0.3).any()) for h, d in zip(hits, dirs)]
+    return float(np.mean(covered))
 
 
 def surface_coverage(mesh, points: np.ndarray, tolerance: float, spacing: float) -> float:

@@ -114,7 +114,8 @@ def occupancy_to_mesh(occ: np.ndarray, origin: np.ndarray, pitch: float):
 
 def solidify(mesh, pitch: float):
     """A closed solid for `mesh`: itself when watertight, else its surface band (surface samples
-    voxelised at `pitch`, cavities filled) — what a boolean with an open scan can use."""
+    voxelised at `pitch`, dilated by a cell, cavities filled; about 3 cells thick) — what a boolean
+    with an open scan can use."""
     from scipy import ndimage
 
     if is_solid(mesh):
@@ -122,12 +123,13 @@ def solidify(mesh, pitch: float):
     pts = sample_surface(mesh, pitch)
     if len(pts) == 0:
         return None
-    lo, hi = pts.min(0) - pitch, pts.max(0) + pitch
+    lo, hi = pts.min(0) - 2 * pitch, pts.max(0) + 2 * pitch
     shape = np.maximum(np.ceil((hi - lo) / pitch).astype(int), 1)
     idx = np.clip(((pts - lo) / pitch).astype(int), 0, shape - 1)
     occ = np.zeros(shape, dtype=bool)
     occ[tuple(idx.T)] = True
-    occ = ndimage.binary_fill_holes(occ)
+    # One cell of dilation: a one-cell sheet would thin out under the contour's smoothing.
+    occ = ndimage.binary_fill_holes(ndimage.binary_dilation(occ))
     return occupancy_to_mesh(occ, lo + 0.5 * pitch, pitch)
 
 

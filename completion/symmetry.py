@@ -92,7 +92,7 @@ def fit_revolution(points: np.ndarray, tolerance: float, support=None):
 # vertical when the object stands on a support (man-made objects are symmetric about vertical
 # planes), else spread over all directions. Up to two planes at least 30 deg apart are used, and
 # their composition, so an object seen from one corner gets its three hidden quarters.
-_MIN_AGREEMENT = 0.3
+_MIN_AGREEMENT = 0.75
 _MAX_CONTRADICTION = 0.05
 
 

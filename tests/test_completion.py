@@ -241,3 +241,137 @@ def test_plugin_output_is_aligned_and_post_processed():
 
     res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": broken, "support_planes": TABLE})
     assert res.method == "sphere" and "no GPU" in res.candidates["plugin"]["why"]
+
+
+def _mug():
+    body = trimesh.creation.revolve(np.array([[0, 0], [0.04, 0], [0.04, 0.1], [0.035, 0.1],
+                                              [0.035, 0.006], [0, 0.006]]), sections=64)
+    handle = trimesh.creation.torus(0.03, 0.006, major_sections=48, minor_sections=12)
+    handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    handle.apply_translation([0.045, 0, 0.05])
+    return from_manifold(to_manifold(body) + to_manifold(handle))
+
+
+def _backproject(cam, depth):
+    K, c2w, w, h = cam
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u]
+    pc = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+    return pc @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def test_mug_handle_left_out_by_the_cylinder_is_added_back():
+    gt = _mug()
+    # Two depth views from the handle side and above: the inside is seen over the rim, and the
+    # free space those views observe carves the cavity out of any solid fit.
+    cams = [_camera(np.array([0.25, -0.3, 0.3]), [0.01, 0, 0.05], w=160, h=120, f=200.0),
+            _camera(np.array([0.35, 0.1, 0.3]), [0.01, 0, 0.05], w=160, h=120, f=200.0)]
+    depths = [_depth(gt, c) for c in cams]
+    pts = np.concatenate([_backproject(c, d) for c, d in zip(cams, depths)])
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE,
+                          "cameras": cams, "depths": depths})
+    assert res.completed, res.reason
+    handle_pts = pts[pts[:, 0] > 0.045]
+    from psimap.completion.meshops import distance_to_surface
+    assert (distance_to_surface(handle_pts, res.mesh) <= VOXEL).mean() > 0.9
+    assert res.mesh.bounds[1, 0] > 0.075              # the handle reaches out to x = 0.081
+    assert res.observed_on_surface > 0.9
+    assert chamfer(res.mesh, gt) < 0.004
+    if res.method in ("cylinder", "revolution"):
+        assert res.candidates[res.method]["parts_added"] >= 1
+
+
+def test_irregular_object_closed_down_to_its_support():
+    # A curved, banana-like bar (an annular sector, extruded) lying on a table, seen from above:
+    # no primitive fits; the fallback fills down to the table and stays above it.
+    ring = trimesh.creation.annulus(0.08, 0.1, height=0.03, sections=64)
+    ring.apply_translation([0, 0, 0.015])
+    cut = trimesh.creation.box([0.3, 0.3, 0.1])
+    cut.apply_translation([0, -0.13, 0])
+    gt = from_manifold(to_manifold(ring) - to_manifold(cut))
+    pts = seen_side(gt, [0.2, -0.3, 1.0], noise=0.0005)
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE})
+    assert res.completed and res.method in ("support", "mirror"), res.reason
+    assert res.mesh.bounds[0, 2] >= -1e-6
+    assert abs(res.mesh.volume - gt.volume) / gt.volume < 0.25
+    assert chamfer(res.mesh, gt) < 0.003
+    assert chamfer(trimesh.convex.convex_hull(pts), gt) > 0.006
+
+
+def test_open_neighbour_scan_is_an_obstacle():
+    # Two balls pressed together; the neighbour is known only as an open partial scan (its upper
+    # front-left, seen over the first ball). The first ball's sphere fit overlaps it by a lens.
+    a = trimesh.creation.icosphere(4, radius=0.04)
+    a.apply_translation([0, 0, 0.04])
+    b = trimesh.creation.icosphere(4, radius=0.04)
+    b.apply_translation([0.06, 0, 0.04])
+    gt = from_manifold(to_manifold(a) - to_manifold(b))
+    pts = seen_side(gt, [-1, -0.3, 0.3])
+    seen_b = b.submesh([np.flatnonzero(b.face_normals @ np.array([-0.5, -1.0, 0.6]) > 0)], append=True)
+    assert not seen_b.is_watertight
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "neighbours": [seen_b]})
+    bare = complete(None, {"points": pts, "voxel_size": VOXEL})
+    assert res.completed and bare.completed
+    assert volume_of_intersection(bare.mesh, b) > 0.05 * b.volume
+    # An open scan only pins down its own surface (its solid band): none of the neighbour's seen
+    # surface may end up inside the result, while the unconstrained fit swallows a patch of it.
+    from psimap.completion.meshops import inside
+    nb_pts = sample_surface(seen_b, 0.002)
+    assert inside(nb_pts, bare.mesh).mean() > 0.03
+    assert inside(nb_pts, res.mesh).sum() == 0
+    assert res.observed_on_surface > 0.9
+
+
+def test_mirror_plane_found_and_rejected_by_free_space():
+    from psimap.completion.symmetry import mirror_planes, mirrored_points
+
+    # A T-shaped prism symmetric about x = 0.02, with both halves partly seen.
+    top = trimesh.creation.box([0.12, 0.03, 0.03])
+    top.apply_translation([0.02, 0, 0.085])
+    stem = trimesh.creation.box([0.03, 0.03, 0.07])
+    stem.apply_translation([0.02, 0, 0.035])
+    gt = from_manifold(to_manifold(top) + to_manifold(stem))
+    pts = seen_side(gt, [0.6, -1, 0.4])
+    planes, stats = mirror_planes(pts, VOXEL, support=TABLE[0])
+    assert planes, stats
+    normals = np.array([abs(p[0][0]) for p in planes])
+    best = planes[int(np.argmax(normals))]
+    assert abs(best[0][0]) > 0.99 and abs(abs(best[1]) - 0.02) < 0.004
+    both = mirrored_points(pts, planes)
+    assert len(both) >= 2 * len(pts)
+    # Everything to the left of x = 0.05 seen empty: the x-plane is contradicted and dropped.
+    planes2, _ = mirror_planes(pts, VOXEL, support=TABLE[0], free_fn=lambda q: q[:, 0] < 0.0)
+    assert all(abs(p[0][0]) < 0.99 for p in planes2)
+
+
+def test_directional_coverage_orders_partial_views():
+    from psimap.completion.coverage import directional_coverage
+
+    ball = trimesh.creation.icosphere(4, radius=0.05)
+    full = sample_surface(ball, 0.003)
+    assert directional_coverage(full) > 0.97
+    assert directional_coverage(full, full / np.linalg.norm(full, axis=1, keepdims=True)) > 0.97
+    half = seen_side(ball, [1, 0, 0])
+    half_n = half / np.linalg.norm(half, axis=1, keepdims=True)
+    assert 0.4 < directional_coverage(half, half_n) < 0.85
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    pts = sample_surface(box, 0.003)
+    _, _, fid = trimesh.proximity.closest_point(box, pts)
+    assert directional_coverage(pts, box.face_normals[fid]) > 0.97     # flat faces, all seen
+    front = pts[box.face_normals[fid] @ np.array([0, -1.0, 0]) > 0.5]    # one face only
+    assert directional_coverage(front, np.tile([0, -1.0, 0], (len(front), 1))) < 0.3
+    # An inner wall facing the viewer does not cover the outside behind it.
+    inner = front + [0, 0.08, 0]
+    both = np.concatenate([front, inner])
+    n_both = np.tile([0, -1.0, 0], (len(both), 1))
+    assert directional_coverage(both) > directional_coverage(both, n_both) + 0.2
+    assert directional_coverage(np.zeros((3, 3))) == 0.0
+
+
+def test_poisson_closing_bridges_a_hole():
+    ball = trimesh.creation.icosphere(4, radius=0.05)
+    pts = sample_surface(ball, 0.003)
+    pts = pts[pts[:, 2] < 0.035]                       # a cap missing on top
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "closing"})
+    assert res.method == "closing" and is_solid(res.mesh)
+    assert chamfer(res.mesh, ball) < 0.003
