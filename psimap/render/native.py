@@ -46,6 +46,7 @@ def _f32(t: torch.Tensor) -> np.ndarray:
 class _Plan:
     """Everything the forward and backward share besides the differentiable tensors."""
 
+    box: np.ndarray          # [N, 4] int32 pixel boxes the surfels were binned with
     offsets: np.ndarray      # [tiles + 1] int32
     ids: np.ndarray          # [pairs] int32
     width: int
@@ -59,7 +60,7 @@ class _Plan:
 
 def _kernel_args(plan: _Plan, arrays: list[np.ndarray], channels: int) -> tuple:
     T, center, depth_key, normal, opac, colors, feats = arrays
-    return (T, center, depth_key, normal, opac, colors, feats, channels, plan.offsets, plan.ids,
+    return (T, center, depth_key, normal, opac, colors, feats, channels, plan.box, plan.offsets, plan.ids,
             plan.width, plan.height, plan.topk, plan.near, plan.far, plan.background)
 
 
@@ -133,7 +134,7 @@ def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Ten
                          f"(got {topk}); use backend='reference' or a smaller topk")
     bg = (np.zeros(3, np.float32) if background is None
           else np.ascontiguousarray(background.detach().to(torch.float32).cpu().numpy().reshape(3)))
-    plan = _Plan(offsets=offsets, ids=ids, width=int(width), height=int(height), topk=k,
+    plan = _Plan(box=box_np, offsets=offsets, ids=ids, width=int(width), height=int(height), topk=k,
                  near=float(near), far=float(far), background=bg)
     outs = _RasterizeNative.apply(proj.T, proj.center, proj.depth_key, proj.normal_c,
                                   opacities, colors, features, plan)
@@ -143,7 +144,8 @@ def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Ten
         "tile_pairs": int(ids.shape[0]),
         "pairs_per_tile": int(ids.shape[0]) / n_tiles,
         "max_pairs_per_tile": max_pairs,
-        "evaluated": plan.evaluated,   # actual work: pixels stop at the first T < 1e-4
+        # Actual work: (pixel, surfel) pairs inside the surfel's box, until the pixel's T < 1e-4.
+        "evaluated": plan.evaluated,
         "culled": int(n - int(binned.sum())),
         "backend": "native",
         "tiles": tiles,

@@ -44,7 +44,8 @@ struct Common {
 Common make_common(Array<const float>& T, Array<const float>& center,
                    Array<const float>& depth_key, Array<const float>& normal,
                    Array<const float>& opacity, Array<const float>& color,
-                   Array<const float>& feature, int channels, Array<const int32_t>& offsets,
+                   Array<const float>& feature, int channels, Array<const int32_t>& box,
+                   Array<const int32_t>& offsets,
                    Array<const int32_t>& ids, int width, int height, int topk, float near,
                    float far, Array<const float>& background) {
     Common c;
@@ -63,6 +64,7 @@ Common make_common(Array<const float>& T, Array<const float>& center,
     c.in.opacity = opacity.data();
     c.in.color = checked(color, 3 * n, "colors");
     c.in.feature = checked(feature, static_cast<size_t>(channels) * n, "features");
+    c.in.box = checked(box, 4 * n, "boxes");
     c.bins.tiles_x = tiles_along(width);
     c.bins.tiles_y = tiles_along(height);
     const size_t tiles = static_cast<size_t>(c.bins.tiles_x) * c.bins.tiles_y;
@@ -138,7 +140,8 @@ NB_MODULE(_native, m) {
         "rasterize_forward",
         [](Array<const float> T, Array<const float> center, Array<const float> depth_key,
            Array<const float> normal, Array<const float> opacity, Array<const float> color,
-           Array<const float> feature, int channels, Array<const int32_t> offsets,
+           Array<const float> feature, int channels, Array<const int32_t> box,
+           Array<const int32_t> offsets,
            Array<const int32_t> ids, int width, int height, int topk, float near, float far,
            Array<const float> background, Array<float> out_rgb, Array<float> out_alpha,
            Array<float> out_depth, Array<float> out_median, Array<float> out_normal,
@@ -146,7 +149,7 @@ NB_MODULE(_native, m) {
            Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
            Array<int32_t> topk_pos) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
-                                   offsets, ids, width, height, topk, near, far, background);
+                                   box, offsets, ids, width, height, topk, near, far, background);
             ForwardBuffers b = make_buffers(c, out_rgb, out_alpha, out_depth, out_median,
                                             out_normal, out_distortion, out_feature, t_final,
                                             n_last, median_pos, dist_sums, topk_pos);
@@ -159,7 +162,8 @@ NB_MODULE(_native, m) {
         "rasterize_backward",
         [](Array<const float> T, Array<const float> center, Array<const float> depth_key,
            Array<const float> normal, Array<const float> opacity, Array<const float> color,
-           Array<const float> feature, int channels, Array<const int32_t> offsets,
+           Array<const float> feature, int channels, Array<const int32_t> box,
+           Array<const int32_t> offsets,
            Array<const int32_t> ids, int width, int height, int topk, float near, float far,
            Array<const float> background, Array<float> depth, Array<float> t_final,
            Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
@@ -169,7 +173,7 @@ NB_MODULE(_native, m) {
            Array<float> g_center, Array<float> g_depth_key, Array<float> g_normal_c,
            Array<float> g_opacity, Array<float> g_color, Array<float> g_feat) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
-                                   offsets, ids, width, height, topk, near, far, background);
+                                   box, offsets, ids, width, height, topk, near, far, background);
             const size_t px = static_cast<size_t>(width) * height;
             const size_t n = static_cast<size_t>(c.in.n);
             ForwardBuffers s{};

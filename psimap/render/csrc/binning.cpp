@@ -80,6 +80,10 @@ void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
         const int64_t i = bins.ids[k];
         SurfelParams& s = params[k - begin];
         for (int j = 0; j < 9; ++j) s.T[j] = in.T[9 * i + j];
+        s.x0 = in.box[4 * i];
+        s.y0 = in.box[4 * i + 1];
+        s.x1 = in.box[4 * i + 2];
+        s.y1 = in.box[4 * i + 3];
         s.cx = in.center[2 * i];
         s.cy = in.center[2 * i + 1];
         s.depth_key = in.depth_key[i];
@@ -90,6 +94,22 @@ void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
             s.normal[j] = in.normal[3 * i + j];
         }
     }
+}
+
+void block_lists(const std::vector<SurfelParams>& params, int tile_x0, int tile_y0,
+                 std::vector<int32_t>& pos, int32_t* starts) {
+    pos.clear();
+    const int n = static_cast<int>(params.size());
+    for (int b = 0; b < kBlocks * kBlocks; ++b) {
+        starts[b] = static_cast<int32_t>(pos.size());
+        const int bx0 = tile_x0 + (b % kBlocks) * kBlockPx, by0 = tile_y0 + (b / kBlocks) * kBlockPx;
+        const int bx1 = bx0 + kBlockPx, by1 = by0 + kBlockPx;
+        for (int j = 0; j < n; ++j) {
+            const SurfelParams& s = params[j];
+            if (s.x0 < bx1 && s.x1 > bx0 && s.y0 < by1 && s.y1 > by0) pos.push_back(j);
+        }
+    }
+    starts[kBlocks * kBlocks] = static_cast<int32_t>(pos.size());
 }
 
 }  // namespace psimap

@@ -19,6 +19,7 @@ struct SurfelInputs {
     const float* opacity = nullptr;  // [N]
     const float* color = nullptr;  // [N, 3]
     const float* feature = nullptr;  // [N, C]
+    const int32_t* box = nullptr;    // [N, 4] (x0, y0, x1, y1) half-open pixel boxes used to bin
 };
 
 // Tiles in row-major order; surfels of tile t are ids[offsets[t] .. offsets[t+1]) front to back.
@@ -86,5 +87,17 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
 // Gathers tile `t`'s surfels into `params` (front to back).
 void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
                  std::vector<SurfelParams>& params);
+
+// A tile is split in kBlocks x kBlocks pixel blocks; each pixel only walks the surfels whose box
+// meets its block (tile-list positions, front to back): positions
+// pos[starts[b] .. starts[b+1]) for block b = by * kBlocks + bx.
+constexpr int kBlockPx = 4;
+constexpr int kBlocks = kTile / kBlockPx;
+void block_lists(const std::vector<SurfelParams>& params, int tile_x0, int tile_y0,
+                 std::vector<int32_t>& pos, int32_t* starts);
+
+inline int block_of(int px, int py, int tile_x0, int tile_y0) {
+    return ((py - tile_y0) / kBlockPx) * kBlocks + (px - tile_x0) / kBlockPx;
+}
 
 }  // namespace psimap

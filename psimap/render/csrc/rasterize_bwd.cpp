@@ -38,6 +38,8 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
         geo.assign(static_cast<size_t>(N) * kGSlots, 0.0f);
         feat.assign(static_cast<size_t>(N) * C, 0.0f);
         std::vector<SurfelParams> params;
+        std::vector<int32_t> block_pos;
+        int32_t block_start[kBlocks * kBlocks + 1];
         std::vector<float> tile_geo, tile_feat;
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < tiles; ++t) {
@@ -48,6 +50,7 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
             tile_geo.assign(static_cast<size_t>(n) * kGSlots, 0.0f);
             tile_feat.assign(static_cast<size_t>(n) * C, 0.0f);
             const int tx = t % bins.tiles_x, ty = t / bins.tiles_x;
+            block_lists(params, tx * kTile, ty * kTile, block_pos, block_start);
             const int px1 = std::min(W, (tx + 1) * kTile), py1 = std::min(H, (ty + 1) * kTile);
             for (int py = ty * kTile; py < py1; ++py) {
                 for (int px = tx * kTile; px < px1; ++px) {
@@ -78,7 +81,10 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
                         while (sel_k >= 0 && sel[sel_k] < 0) --sel_k;
                     float T = T_final;
                     float S = g_Tf * T_final;  // sum_{k > i} dL/dw_k w_k + dL/dT_final T_final
-                    for (int j = last - 1; j >= 0; --j) {
+                    const int b = block_of(px, py, tx * kTile, ty * kTile);
+                    for (int k = block_start[b + 1] - 1; k >= block_start[b]; --k) {
+                        const int j = block_pos[k];
+                        if (j >= last) continue;
                         const SurfelParams& s = params[j];
                         SurfelHit h;
                         eval_surfel(s, x, y, near, h);

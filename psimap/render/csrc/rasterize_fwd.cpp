@@ -18,13 +18,15 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
 #pragma omp parallel reduction(+ : evaluated)
     {
         std::vector<SurfelParams> params;
+        std::vector<int32_t> block_pos;
+        int32_t block_start[kBlocks * kBlocks + 1];
         std::vector<float> feat_acc(C);
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < tiles; ++t) {
             gather_tile(in, bins, t, params);
-            const int n = static_cast<int>(params.size());
             const int32_t* ids = bins.ids + bins.offsets[t];
             const int tx = t % bins.tiles_x, ty = t / bins.tiles_x;
+            block_lists(params, tx * kTile, ty * kTile, block_pos, block_start);
             const int px1 = std::min(W, (tx + 1) * kTile), py1 = std::min(H, (ty + 1) * kTile);
             for (int py = ty * kTile; py < py1; ++py) {
                 for (int px = tx * kTile; px < px1; ++px) {
@@ -39,18 +41,18 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                     int top_pos[kMaxTopK];
                     int top_count = 0;
                     if (K == 0) std::fill(feat_acc.begin(), feat_acc.end(), 0.0f);
-                    int j = 0;
-                    for (; j < n; ++j) {
+                    const int b = block_of(px, py, tx * kTile, ty * kTile);
+                    for (int k = block_start[b]; k < block_start[b + 1]; ++k) {
+                        const int j = block_pos[k];
                         const SurfelParams& s = params[j];
+                        // (pixel, surfel) evaluations: those inside the surfel's box.
+                        evaluated += (x >= s.x0) & (x < s.x1) & (y >= s.y0) & (y < s.y1);
                         SurfelHit h;
                         eval_surfel(s, x, y, near, h);
                         const float alpha = std::min(kAlphaMax, s.opacity * h.G);
                         if (!(alpha >= kAlphaMin)) continue;
                         const float T_next = T_acc * (1.0f - alpha);
-                        if (T_next < kTransmitMin) {
-                            ++j;  // this evaluation counts, the surfel is not blended
-                            break;
-                        }
+                        if (T_next < kTransmitMin) break;  // this surfel is not blended
                         const float w = alpha * T_acc;
                         for (int c = 0; c < 3; ++c) {
                             rgb[c] += w * s.color[c];
@@ -75,7 +77,6 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                         T_acc = T_next;
                         last = j + 1;
                     }
-                    evaluated += j;
                     const float alpha_out = 1.0f - T_acc;
                     for (int c = 0; c < 3; ++c) {
                         out.rgb[3 * pix + c] = rgb[c] + T_acc * cfg.background[c];

@@ -25,6 +25,7 @@ constexpr float kAlphaOutMin = 1e-6f;
 // One surfel's parameters gathered for a tile (array of structs: one cache line-ish each).
 struct SurfelParams {
     float T[9];          // splat-to-pixel homography, row major
+    int x0, y0, x1, y1;  // pixel box (half-open) holding every pixel the surfel can reach
     float cx, cy;        // projected centre
     float depth_key;     // camera depth of the centre
     float opacity;
@@ -62,6 +63,9 @@ PSIMAP_HD void eval_surfel(const SurfelParams& s, float x, float y, float near, 
     h.v = 0.0f;
     h.branch = 0;
     if (s.half_rho_cut < 0.0f) return;
+    // Outside its (precise or circle) box the surfel cannot reach alpha >= 1/255: stage 1 built
+    // the box from the 3-sigma ellipse and the low-pass disk with slack. Skip all the math.
+    if (x < s.x0 || x >= s.x1 || y < s.y0 || y >= s.y1) return;
     // 3D branch: intersect the pixel ray (two planes h_x, h_y) with the tangent plane.
     const float hx0 = x * T[6] - T[0], hx1 = x * T[7] - T[1], hx2 = x * T[8] - T[2];
     const float hy0 = y * T[6] - T[3], hy1 = y * T[7] - T[4], hy2 = y * T[8] - T[5];
@@ -73,12 +77,19 @@ PSIMAP_HD void eval_surfel(const SurfelParams& s, float x, float y, float near, 
     bool valid3 = false;
     float rho3 = 0.0f, u = 0.0f, v = 0.0f, z3 = 0.0f;
     // |p2| > eps |hx| |hy|, squared (as the reference does), else the surfel is edge-on.
-    if (p2 * p2 > kEdgeOnEps2 * hx_sq * hy_sq) {
-        u = p0 / p2;
-        v = p1 / p2;
-        rho3 = u * u + v * v;
-        z3 = T[6] * u + T[7] * v + T[8];
-        valid3 = (rho3 <= kChi2) && (z3 > near);
+    const float den = p2 * p2;
+    if (den > kEdgeOnEps2 * hx_sq * hy_sq) {
+        // Division-free rejection first (most evaluations miss the splat): rho3 = |p01|^2 / p2^2.
+        // Beyond min(chi^2, 2 cut) by a 1e-4 margin (>> rounding) the divided rho3 would fail
+        // too: either rho3 > chi^2, or G3 < 1/(255 o) < G2 whenever the low-pass is tried.
+        const float lim = fminf(kChi2, 2.0f * s.half_rho_cut);
+        if (p0 * p0 + p1 * p1 <= lim * den * 1.0001f) {
+            u = p0 / p2;
+            v = p1 / p2;
+            rho3 = u * u + v * v;
+            z3 = T[6] * u + T[7] * v + T[8];
+            valid3 = (rho3 <= kChi2) && (z3 > near);
+        }
     }
     const float dx = x - s.cx, dy = y - s.cy;
     const float rho2 = dx * dx + dy * dy;
