@@ -170,18 +170,54 @@ def test_write_labels_frames_and_bad_input(scene, tmp_path):
         write_labels(scene, tmp_path / "missing", tmp_path / "three")
 
 
-def make_data(scene, root):
-    """A scene folder whose frames are the scene's cameras (depth rendered from the surfels)."""
+def make_data(scene, root, gt_labels=False):
+    """A scene folder whose frames are the scene's cameras (depth rendered from the surfels; with
+    gt_labels, the scene's rendered labels as the GT label maps)."""
     from psimap.data.scene_format import write_scene
+    from psimap.panoptic.labels import render_labels
 
     frames = []
     for i in range(len(scene.cameras["names"])):
         Kc, c2w, w, h = scene.camera(i)
         out = scene.render(i)
         depth = np.where(out.alpha.numpy() > 0.5, out.median_depth.numpy(), 0).astype(np.float32)
+        gi, gs = render_labels(scene, Kc, c2w, w, h) if gt_labels else (None, None)
         frames.append(Frame(rgb=np.zeros((h, w, 3), np.float32), depth=depth, K=Kc, c2w=c2w,
-                            name=f"img_{i:03d}"))
+                            name=f"img_{i:03d}", gt_semantic=gs, gt_instance=gi))
     return write_scene(root, frames, CLASSES)
+
+
+def test_eval_checkpoint_reports_panoptic(scene, tmp_path, capsys):
+    """`psimap eval scene.ckpt DATA`: DATA without gt/mesh.ply but with GT label maps -> panoptic only."""
+    from psimap.cli import main
+    from psimap.metrics.evaluate import evaluate
+
+    data = make_data(scene, tmp_path / "data", gt_labels=True)
+    ckpt = tmp_path / "scene.ckpt"
+    scene.save(ckpt)
+    res = evaluate(ckpt, data)
+    assert "geometry" not in res
+    p = res["panoptic"]
+    assert p["pq"] == pytest.approx(1.0) and p["miou"] == pytest.approx(1.0) and p["n_gt_instances"] == 2
+    # ids swapped between the boxes: still consistent, still perfect; glued into one: box PQ drops
+    for ids, expect in (((0, 2, 1), 1.0), ((0, 1, 1), None)):
+        other = two_box_scene(instance_ids=ids)
+        other.save(tmp_path / "other.ckpt")
+        p = evaluate(tmp_path / "other.ckpt", data)["panoptic"]
+        if expect:
+            assert p["pq"] == pytest.approx(expect)
+        else:
+            assert p["per_class"][2]["tp"] <= 1 and p["per_class"][2]["fn"] >= 1 and p["pq"] < 0.85
+    assert main(["eval", str(ckpt), str(data), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["panoptic"]["pq"] == pytest.approx(1.0)
+    # a scene without labels and DATA without gt mesh: nothing to evaluate, one clear line
+    bare = two_box_scene()
+    for k in ("instance_id", "semantic_id"):
+        bare.surfels.pop(k)
+    bare.save(tmp_path / "bare.ckpt")
+    assert main(["eval", str(tmp_path / "bare.ckpt"), str(data)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nothing to evaluate" in err[0]
 
 
 def test_cli_labels(scene, tmp_path, capsys):

@@ -3,7 +3,10 @@
 PRED is
 - a mesh file (.ply .obj .glb .gltf .off .stl): geometry against DATA/gt/mesh.ply, GT culled to the
   surface DATA's cameras see;
-- a trained checkpoint (.ckpt): its whole-scene mesh (`Scene.mesh()`), evaluated as above;
+- a trained checkpoint (.ckpt): its whole-scene mesh (`Scene.mesh()`), evaluated as above when
+  DATA has gt/mesh.ply, and, when DATA has GT label maps and the checkpoint carries panoptic labels,
+  the labels rendered from the scene for every frame of DATA (`psimap.panoptic.labels.render_labels`)
+  scored as below;
 - a folder of predicted labels: panoptic against DATA/gt/{semantic,instance}/<stem>.png, either
   COCO panoptic (`panoptic.json` + PNGs whose pixel id = R + 256 G + 256^2 B) or
   `semantic/<stem>.png` + `instance/<stem>.png` (uint16). Frames are matched by stem; a frame with
@@ -46,14 +49,6 @@ def load_mesh(path: str | os.PathLike):
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise PsimapError(f"mesh {path} has no triangles")
     return mesh
-
-
-def _checkpoint_mesh(path: Path):
-    try:
-        from psimap.scene import load_scene
-    except ImportError:
-        raise PsimapError("evaluating a checkpoint needs the training stage (psimap.scene)") from None
-    return load_scene(path).mesh()
 
 
 def _read_panoptic_png(path: Path) -> np.ndarray:
@@ -219,13 +214,83 @@ def evaluate_panoptic(labels, data, *, progress=False, plot=None) -> dict:
     return out
 
 
+class _RenderedLabels:
+    """Predicted frames rendered from a scene's hard labels, for the frames of DATA (matched by stem)."""
+
+    def __init__(self, scene, seq):
+        self.scene = scene
+        self.views = {}
+        for i in range(len(seq)):
+            self.views[seq.names[i] if seq.names else seq[i].name] = i
+        self.seq = seq
+
+    def stems(self) -> set[str]:
+        return set(self.views)
+
+    def read(self, stem: str) -> tuple[np.ndarray, np.ndarray]:
+        from psimap.panoptic.labels import render_labels
+
+        f = self.seq[self.views[stem]]
+        inst, sem = render_labels(self.scene, f.K, f.c2w, f.width, f.height)
+        # Things take their instance's class by vote, as `psimap labels` writes them.
+        for iid, cid in self.votes.items():
+            sem[inst == iid] = cid
+        return sem, inst
+
+    @property
+    def votes(self) -> dict[int, int]:
+        if not hasattr(self, "_votes"):
+            from psimap.panoptic.labels import instance_classes
+
+            self._votes = instance_classes(self.scene)
+        return self._votes
+
+
+def _has_gt_labels(seq) -> bool:
+    return len(seq) > 0 and seq[0].gt_semantic is not None
+
+
+def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, plot=None,
+                        progress=False) -> dict:
+    """Metrics of a scene.ckpt: geometry of its mesh (if DATA has gt/mesh.ply) and panoptic metrics of
+    its rendered labels (if DATA has GT label maps and the checkpoint carries labels)."""
+    from psimap.data.scene_format import read_gt
+    from psimap.panoptic.labels import has_labels
+
+    try:
+        from psimap.scene import load_scene
+    except ImportError:
+        raise PsimapError("evaluating a checkpoint needs the training stage (psimap.scene)") from None
+    scene = load_scene(pred)
+    seq = _load_data(data)
+    root = Path(seq.root or data)
+    do_geometry = read_gt(root).mesh is not None
+    do_panoptic = _has_gt_labels(seq) and has_labels(scene) and bool(scene.classes)
+    if not (do_geometry or do_panoptic):
+        raise PsimapError(f"{root / 'gt'}: nothing to evaluate {pred} against (needs gt/mesh.ply, or "
+                          f"gt/semantic label maps and a checkpoint with panoptic labels)")
+    out = {}
+    if do_geometry:
+        plot_geo = plot
+        if plot and do_panoptic:
+            plot_geo = str(Path(plot).with_name(Path(plot).stem + "_geometry" + Path(plot).suffix))
+        out["geometry"] = evaluate_geometry(scene.mesh(), data, threshold=threshold, samples=samples,
+                                            seed=seed, plot=plot_geo, progress=progress)
+    if do_panoptic:
+        plot_pan = plot
+        if plot and do_geometry:
+            plot_pan = str(Path(plot).with_name(Path(plot).stem + "_panoptic" + Path(plot).suffix))
+        out["panoptic"] = evaluate_panoptic(_RenderedLabels(scene, seq), data, progress=progress, plot=plot_pan)
+    return out
+
+
 def evaluate(pred, data, *, threshold: float = 0.05, samples: int = 200_000, seed: int = 0,
              plot: str | None = None, progress: bool = False) -> dict:
     """Metrics of `pred` against the ground truth of scene folder `data`.
 
     pred: a mesh file path, a trimesh.Trimesh, a `.ckpt` path, or a folder of predicted labels.
-    Returns {"geometry": {...}} for meshes / checkpoints and {"panoptic": {...}} for label folders
-    (keys: GEOMETRY_KEYS / PANOPTIC_KEYS, plus "per_class" for panoptic). `samples` caps the points
+    Returns {"geometry": {...}} for meshes, {"panoptic": {...}} for label folders, and for
+    checkpoints whichever DATA's ground truth and the checkpoint allow (both when possible) (keys: GEOMETRY_KEYS / PANOPTIC_KEYS, plus "per_class" for panoptic). `samples` caps the points
     sampled on each mesh (fewer are used once the error budget is met).
     """
     if not (threshold > 0 and math.isfinite(threshold)):
@@ -240,8 +305,8 @@ def evaluate(pred, data, *, threshold: float = 0.05, samples: int = 200_000, see
         return {"panoptic": evaluate_panoptic(pred, data, **kw)}
     suffix = pred.suffix.lower()
     if suffix == ".ckpt":
-        mesh = _checkpoint_mesh(pred)
-    elif suffix in MESH_SUFFIXES:
+        return evaluate_checkpoint(pred, data, threshold=threshold, samples=samples, seed=seed, **kw)
+    if suffix in MESH_SUFFIXES:
         mesh = load_mesh(pred)
     else:
         raise PsimapError(f"{pred}: PRED must be a mesh ({', '.join(MESH_SUFFIXES)}), a .ckpt or a label folder")

@@ -163,7 +163,9 @@ def write_labels(scene, frames_or_data, out_dir, *, topk: int | None = None, bac
 
 def has_labels(scene) -> bool:
     """Whether the scene carries panoptic labels (hard ids, or semantic logits / instance queries)."""
-    s = scene.surfels
+    s = getattr(scene, "surfels", None)
+    if not isinstance(s, dict) or "semantic" not in s:
+        return False
     return ("instance_id" in s or "semantic_id" in s or int(s["semantic"].shape[1]) > 0
             or int(scene.queries["feature"].shape[0]) > 0)
 
