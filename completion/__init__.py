@@ -21,8 +21,9 @@ says what it did: `CompletionResult.method` names the method and `reason` says w
 - "images": list of [H, W, 3] float RGB (only handed to the plugin).
 - "plugin": callable (points [P,3], images, label) -> trimesh: a generative model's proposal, tried
   first, aligned to the points, then post-processed like every other method.
-- "coverage_threshold": float, default 0.9: objects whose directional coverage reaches it are
-  returned unchanged.
+- "coverage_threshold": float, default 0.95: objects whose directional coverage reaches it are
+  returned unchanged (an object on a table seen from all sides still misses its underside, ~0.9,
+  and is closed down to the table).
 - "method": "auto" (default) or one of "plugin", "sphere", "cylinder", "box", "revolution",
   "closing", "mirror", "support" to force a method.
 
@@ -51,6 +52,7 @@ import numpy as np
 from psimap import PsimapError
 
 MIN_POINTS = 50               # fewer observed points do not constrain any shape
+COVERAGE_THRESHOLD = 0.95     # directional coverage at which an object counts as fully observed
 ACCEPT_INLIERS = 0.9          # share of observed points within tolerance of a candidate surface
 PARAMETRIC_RMS = 0.5          # a parametric shape must also fit tightly: RMS <= this x voxel
 _PARAMETRIC = ("sphere", "cylinder", "box", "revolution")
@@ -142,7 +144,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                           seconds=time.perf_counter() - t0)
     from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
     from .freespace import cameras_seeing, check_cameras, known_free
-    from .meshops import is_solid, solidify
+    from .meshops import is_solid, solidify, to_manifold
     from .support import normalise_planes, planes_from_background, support_below
 
     # Context is validated before any early return so malformed input always fails loudly.
@@ -155,7 +157,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     normals = oriented_normals(points, partial, spacing or tol,
                                viewpoints=[c[1][:3, 3] for c in cams] if cams else None)
     coverage = directional_coverage(points, normals)
-    threshold = float(context.get("coverage_threshold", 0.9))
+    threshold = float(context.get("coverage_threshold", COVERAGE_THRESHOLD))
     if coverage >= threshold and forced == "auto":
         return _unchanged(partial, "none", f"fully observed: coverage {coverage:.2f} >= {threshold:.2f}",
                           coverage=coverage, tolerance=tol, seconds=time.perf_counter() - t0)
@@ -173,6 +175,8 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     obstacles = [solidify(m, 0.5 * tol) for m in near]
     if background is not None and is_solid(background):
         obstacles.append(background)
+    obstacles = [o for o in obstacles if o is not None]
+    obstacle_manifolds = [to_manifold(o) for o in obstacles]    # converted once, used per candidate
 
     from . import closing, primitives, symmetry
     from .support import support_closing
@@ -230,7 +234,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                 if frac > FREE_CARVE:
                     mesh = carve_free(mesh, points, free_fn, tol)
             if mesh is not None and (obstacles or blocking):
-                mesh = subtract_obstacles(mesh, obstacles, blocking, points)
+                mesh = subtract_obstacles(mesh, obstacles, blocking, points, obstacle_manifolds)
             if mesh is None or not len(mesh.faces):
                 candidates[name] = {"accepted": False, "why": "nothing left after the constraints"}
                 continue

@@ -74,8 +74,9 @@ def blocking_planes(planes, points: np.ndarray, tolerance: float):
     return [(n, d) for n, d in planes if (points @ n - d).min() >= -tolerance]
 
 
-def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray):
+def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray, manifolds=None):
     """mesh minus every closed obstacle mesh, trimmed to the front of every plane (n, d).
+    manifolds: the obstacles already converted by `to_manifold` (converted here when None).
 
     Keeps the pieces that hold observed points (all pieces when none does). Returns trimesh or None.
     """
@@ -86,14 +87,14 @@ def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray):
     man = to_manifold(mesh)
     for n, d in planes:
         man = man.trim_by_plane(tuple(float(x) for x in n), float(d))
-    for ob in obstacles:
+    for k, ob in enumerate(obstacles):
         if ob is None:
             continue
         lo, hi = ob.bounds
         mlo, mhi = mesh.bounds
         if (hi < mlo).any() or (lo > mhi).any():
             continue
-        man = man - to_manifold(ob)
+        man = man - (manifolds[k] if manifolds is not None else to_manifold(ob))
     if man.is_empty():
         return None
     pieces = [from_manifold(p) for p in man.decompose()]

@@ -101,7 +101,7 @@ def _reflect(points: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
 
 
 def mirror_planes(points: np.ndarray, tolerance: float, support=None, free_fn=None,
-                  max_points: int = 1500, seed: int = 0):
+                  max_points: int = 600, seed: int = 0):
     """Credible mirror planes of points [P, 3]. Returns (list of (n [3], d, agreement), stats)."""
     from scipy.spatial import cKDTree
 
@@ -120,7 +120,7 @@ def mirror_planes(points: np.ndarray, tolerance: float, support=None, free_fn=No
     for n in normals:
         u = sub @ n
         best = (-1.0, 0.0)
-        for d in np.linspace(u.min(), u.max(), 25)[1:-1]:
+        for d in np.linspace(u.min(), u.max(), 19)[1:-1]:
             m = _reflect(sub, n, d)
             dist, _ = tree.query(m, k=1, distance_upper_bound=1.5 * tolerance)
             agree = float(np.isfinite(dist).mean())
