@@ -115,6 +115,9 @@ def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Ten
     """Stages 2-3 of SPEC.md in C++. proj: stage-1 output for N surfels; opacities [N],
     colors [N, 3], features [N, C] or None, background [3] or None. Returns a RenderOutput whose
     tensors are differentiable (through the native backward)."""
+    if colors.device.type != "cpu":
+        raise ValueError(f"rasterize: the native backend runs on CPU tensors, got {colors.device}; "
+                         f"use backend='reference' or 'auto'")
     n = colors.shape[0]
     if features is None:
         features = colors.new_zeros(n, 0)
