@@ -93,9 +93,11 @@ def _observed_points(partial, context) -> np.ndarray:
 
         v = np.asarray(partial.vertices, dtype=np.float64)
         v = v[np.isfinite(v).all(1)]
-        if len(partial.faces) and len(v) >= 3:
-            spacing = point_spacing(v) or 1e-3
-            pts = sample_surface(partial, spacing)
+        if len(partial.faces) and len(v) >= 3 and partial.area > 0:
+            # Vertex spacing says nothing for a low-poly mesh: sample ~10k points over its area,
+            # or at the vertex spacing when that is finer (a TSDF mesh's own resolution).
+            spacing = min(point_spacing(v) or np.inf, float(np.sqrt(partial.area / 5000.0)))
+            pts = sample_surface(partial, spacing, max_points=30_000)
         else:
             pts = v
     else:
