@@ -375,3 +375,20 @@ def test_poisson_closing_bridges_a_hole():
     res = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "closing"})
     assert res.method == "closing" and is_solid(res.mesh)
     assert chamfer(res.mesh, ball) < 0.003
+
+
+def test_open_background_scan_gives_support_and_wall_planes():
+    # The export pipeline passes the background as an open scan: a floor quad and a wall quad.
+    floor = trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+    wall = trimesh.Trimesh([[-1, 0.1, 0], [1, 0.1, 0], [1, 0.1, 1], [-1, 0.1, 1]], [[0, 2, 1], [0, 3, 2]])
+    background = trimesh.util.concatenate([floor, wall])
+    gt = trimesh.creation.cylinder(0.04, 0.12, sections=96)
+    gt.apply_translation([0, 0.06, 0.06])               # stands on the floor, touches the wall
+    pts = seen_side(gt, [0.2, -1, 0.8], noise=0.0003)
+    pts = pts[pts[:, 2] > 0.03]                          # lower front hidden by something
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "background": background,
+                          "label": "can", "instance_id": 3})
+    assert res.completed and res.method == "cylinder", res.reason
+    assert abs(res.mesh.bounds[0, 2]) < 1e-3              # extended down to the floor
+    assert res.mesh.bounds[1, 1] <= 0.1 + 1e-6            # not through the wall
+    assert chamfer(res.mesh, gt) < 0.002
