@@ -13,9 +13,14 @@ def cli_export(opts) -> int:
     import psimap
     from psimap.exporters.pipeline import export_scene
 
+    kw = {}
+    if getattr(opts, "densities", ""):
+        from psimap.exporters.physics import load_density_table
+
+        kw["densities"] = load_density_table(opts.densities)
     scene = psimap.load(opts.ckpt)
     report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
-                          check=not opts.no_check, progress=sys.stderr.isatty())
+                          check=not opts.no_check, progress=sys.stderr.isatty(), **kw)
     n, skipped = len(report["objects"]), len(report["skipped"])
     print(f"exported {n} object(s) to {opts.out} ({opts.format}); skipped {skipped}")
     for o in report["objects"]:

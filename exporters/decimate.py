@@ -78,8 +78,11 @@ def simplify_to_count(mesh, faces: int):
     v, f = fast_simplification.simplify(np.asarray(mesh.vertices, np.float64),
                                         np.asarray(mesh.faces, np.int32), target_count=int(faces),
                                         preserve_border=not mesh.is_watertight)
+    out = trimesh.Trimesh(v, f, process=True)
+    if out.is_watertight and len(out.split(only_watertight=False)) == 1:
+        return out
     # edge collapses can pinch off tiny closed 2-face pockets: drop them, keep the real surface
-    return drop_slivers(trimesh.Trimesh(v, f, process=True))
+    return drop_slivers(out)
 
 
 def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32,

@@ -133,7 +133,13 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
         return RepairResult(None, False, False,
                             f"flat: thickness {thickness * 1000:.2f} mm < {min_thickness * 1000:.1f} mm")
     if not m.is_watertight:
-        m2 = _close_holes(m, max_hole_edges=len(m.faces) + 3)
+        m2 = m
+        for _ in range(3):
+            m2 = _close_holes(m2, max_hole_edges=len(m2.faces) + 3)
+            if m2.is_watertight and len(m2.split(only_watertight=False)) == 1:
+                break
+            # hole filling can pinch off 2-face pockets at a ragged rim: drop them, close again
+            m2 = drop_slivers(m2, keep_fraction)
         if m2.is_watertight and len(m2.split(only_watertight=False)) == 1:
             m = m2
             steps.append("closed holes")

@@ -73,10 +73,11 @@ class MeshOptions:
 @dataclass
 class ExportOptions:
     ckpt: str = pos("trained scene checkpoint")
-    format: str = opt("mjcf", "output format", choices=["usd", "mjcf", "glb"])
+    format: str = opt("mjcf", "output format (all = the three)", choices=["usd", "mjcf", "glb", "all"])
     out: str = opt("export", "output folder")
     completion: str = opt("auto", "object completion: auto or none", choices=["auto", "none"])
     no_check: bool = opt(False, "skip the MuJoCo simulation check")
+    densities: str = opt("", "JSON file {class name: kg/m^3} overriding the default density table")
 
 
 @dataclass

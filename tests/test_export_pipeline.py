@@ -187,4 +187,9 @@ def test_cli_export_and_bad_checkpoints(ckpt, tmp_path, capsys):
     rc = main(["export", str(foreign), "--out", str(tmp_path / "o3")])
     err = capsys.readouterr().err
     assert rc == 1 and len(err.strip().splitlines()) == 1
-    assert not (tmp_path / "o2").exists() and not (tmp_path / "o3").exists()
+    bad_table = tmp_path / "d.json"
+    bad_table.write_text('{"box": "heavy"}')
+    rc = main(["export", str(ckpt), "--densities", str(bad_table), "--out", str(tmp_path / "o4")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "density table" in err
+    assert not any((tmp_path / d).exists() for d in ("o2", "o3", "o4"))
