@@ -53,6 +53,7 @@ from psimap import PsimapError
 
 MIN_POINTS = 50               # fewer observed points do not constrain any shape
 COVERAGE_THRESHOLD = 0.95     # directional coverage at which an object counts as fully observed
+CLOSING_COVERAGE = 0.8        # Poisson closing only for mostly seen objects: it bulges into big holes
 ACCEPT_INLIERS = 0.9          # share of observed points within tolerance of a candidate surface
 PARAMETRIC_RMS = 0.5          # a parametric shape must also fit tightly: RMS <= this x voxel
 _PARAMETRIC = ("sphere", "cylinder", "box", "revolution")
@@ -196,7 +197,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                ("cylinder", lambda: primitives.fit_cylinder(points, tol, support)),
                ("box", lambda: primitives.fit_box(points, tol, support, blocking)),
                ("revolution", lambda: symmetry.fit_revolution(points, tol, support))]
-        if coverage >= 0.6 or forced == "closing":
+        if coverage >= CLOSING_COVERAGE or forced == "closing":
             yield [("closing", lambda: closing.poisson_closing(
                 points, normals, tol))]
         def _mirror():
