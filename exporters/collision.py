@@ -247,7 +247,7 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
             continue
         err = parts_error(parts)
         if err < best.error:
-            best = Collision("decomposition", err, tol, parts=parts)
+            best = Collision("decomposition" if len(parts) > 1 else "hull", err, tol, parts=parts)
         if err <= tol:
             break
     return best

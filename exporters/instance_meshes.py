@@ -13,6 +13,8 @@ import numpy as np
 
 # pixels seen by less than this much surfel coverage are unknown, not free space
 MIN_ALPHA = 0.5
+# an instance seen on fewer pixels than this in a view adds nothing but noise to its fusion
+MIN_PIXELS = 16
 
 
 @dataclass
@@ -106,11 +108,15 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
         # one-pixel erosion: boundary pixels blend the object's splats over what lies behind, and
         # fusing them grows a skirt around the silhouette
         masks = [binary_erosion(m == t.instance_id) for m in maps]
-        if sum(int(m.sum()) for m in masks) < 16:
+        seen = [k for k, m in enumerate(masks) if int(m.sum()) >= MIN_PIXELS]
+        if not seen:
             continue
-        # objects are small: half the scene voxel resolves them better at little cost
-        t.mesh = fuse_tsdf(depths, Ks, c2ws, colors=colors, masks=masks, voxel_size=obj_voxel,
-                           depth_max=params.depth_max, keep_fraction=0.2)
+        try:
+            t.mesh = fuse_tsdf([depths[k] for k in seen], [Ks[k] for k in seen], [c2ws[k] for k in seen],
+                               colors=[colors[k] for k in seen], masks=[masks[k] for k in seen],
+                               voxel_size=obj_voxel, depth_max=params.depth_max, keep_fraction=0.2)
+        except RuntimeError:    # Open3D aborts when the masked depth touches no voxel block
+            t.mesh = None
     bg_masks = [np.isin(m, list(stuff_ids)) & (m >= 0) for m in maps]
     background = None
     if sum(int(m.sum()) for m in bg_masks) >= 16:
