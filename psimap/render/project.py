@@ -118,9 +118,10 @@ def _tile_boxes(T: torch.Tensor, center: torch.Tensor, valid: torch.Tensor, widt
     lo = torch.minimum(ell - half, center - R_LOWPASS) - BOX_SLACK
     hi = torch.maximum(ell + half, center + R_LOWPASS) + BOX_SLACK
 
-    Msym = 0.5 * (M + M.transpose(1, 2))
-    Msym = torch.where(ok[:, None, None], Msym, torch.zeros_like(Msym))
-    semi_major = torch.sqrt(torch.clamp(torch.linalg.eigvalsh(Msym)[:, -1], min=0.0))
+    # Largest eigenvalue of the symmetric 2x2 M in closed form (no batched LAPACK call).
+    a, d, b = M[:, 0, 0], M[:, 1, 1], 0.5 * (M[:, 0, 1] + M[:, 1, 0])
+    lam_max = 0.5 * (a + d) + torch.sqrt(0.25 * (a - d) ** 2 + b * b)
+    semi_major = torch.sqrt(torch.clamp(torch.where(ok, lam_max, torch.zeros_like(lam_max)), min=0.0))
     radius = torch.maximum(semi_major, (ell - center).norm(dim=-1) + R_LOWPASS) + BOX_SLACK
     clo = ell - radius[:, None]
     chi_ = ell + radius[:, None]
