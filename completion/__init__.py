@@ -7,7 +7,8 @@ says what it did: `CompletionResult.method` names the method and `reason` says w
 `context` keys read (all optional; pass what is known):
 - "label": str, class name (only handed to the plugin).
 - "points": [P, 3] observed surface points of the object (world, metres). Without them the partial
-  mesh's own surface is taken as observed (a repaired, closed TSDF mesh then looks fully seen).
+  mesh's surface is sampled; with cameras + depths only the samples some depth map confirms count
+  as observed (surface a repair added is not), without cameras all of it does.
 - "voxel_size": float, TSDF voxel (metres): the tolerance for "observed points stay on the result",
   the free-space margin and the voxel pitch of carving. Default: 2 x the median point spacing.
 - "support_planes": list of (normal [3], offset) planes {x : normal·x = offset} (floor, table top,
@@ -146,7 +147,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
         return _unchanged(partial, "skipped", f"tiny partial: {what}", tolerance=tol,
                           seconds=time.perf_counter() - t0)
     from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
-    from .freespace import cameras_seeing, check_cameras, known_free
+    from .freespace import cameras_seeing, check_cameras, known_free, seen_on_surface
     from .meshops import is_solid, solidify, to_manifold
     from .support import normalise_planes, planes_from_background, support_below
 
@@ -155,6 +156,17 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     background = context.get("background")
     planes = normalise_planes(context.get("support_planes"), centre)
     cams = check_cameras(context.get("cameras"), context.get("depths"))
+    note = ""
+    if context.get("points") is None and cams:
+        # A mesh-only observation may carry surface no camera saw (a repair capped its holes):
+        # keep the samples some depth map confirms, so coverage counts only what was seen.
+        seen = seen_on_surface(points, cams, 2 * tol)
+        if seen.sum() >= MIN_POINTS:
+            if not seen.all():
+                note = f"; {1 - seen.mean():.0%} of the mesh surface unseen by any camera ignored"
+            points = points[seen]
+        else:
+            note = "; no camera confirms the mesh surface: all of it taken as observed"
     from .closing import oriented_normals
 
     normals = oriented_normals(points, partial, spacing or tol,
@@ -162,7 +174,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     coverage = directional_coverage(points, normals)
     threshold = float(context.get("coverage_threshold", COVERAGE_THRESHOLD))
     if coverage >= threshold and forced == "auto":
-        return _unchanged(partial, "none", f"fully observed: coverage {coverage:.2f} >= {threshold:.2f}",
+        return _unchanged(partial, "none", f"fully observed: coverage {coverage:.2f} >= {threshold:.2f}{note}",
                           coverage=coverage, tolerance=tol, seconds=time.perf_counter() - t0)
 
     planes += planes_from_background(background, points, reach=2.0 * extent)
@@ -267,7 +279,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
     surf_cov = surface_coverage(mesh, points, 2 * tol, tol)
     state = check(mesh, points, tol, obstacles=obstacles, planes=blocking, free_fn=free_fn, pitch=tol)
     why = (f"coverage {coverage:.2f} < {threshold:.2f}; {name} fits {inl:.0%} of observed points "
-           f"(RMS {rms * 1000:.1f} mm)")
+           f"(RMS {rms * 1000:.1f} mm){note}")
     if candidates.get(name, {}).get("accepted") is False:
         why += "; no method passed the fit test, fallback used"
     rejected = [f"{k}: {v['why']}" for k, v in candidates.items() if not v["accepted"] and v.get("why")]

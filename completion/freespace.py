@@ -75,6 +75,26 @@ def known_free(points: np.ndarray, cameras, tolerance: float) -> np.ndarray:
     return free
 
 
+def seen_on_surface(points: np.ndarray, cameras, tolerance: float) -> np.ndarray:
+    """points [Q, 3] that some camera saw as surface: they project inside its image onto a valid
+    depth within `tolerance` of their own depth. Returns [Q] bool."""
+    points = np.asarray(points, dtype=np.float64)
+    seen = np.zeros(len(points), dtype=bool)
+    for K, c2w, w, h, depth in cameras:
+        pc = (points - c2w[:3, 3]) @ c2w[:3, :3]
+        z = pc[:, 2]
+        ok = z > 1e-6
+        zs = np.where(ok, z, 1.0)
+        u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 2])
+        v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2])
+        ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        d = np.zeros(len(points))
+        d[ok] = depth[v[ok].astype(np.int64), u[ok].astype(np.int64)]
+        ok &= np.isfinite(d) & (d > 0)
+        seen |= ok & (np.abs(z - d) <= tolerance)
+    return seen
+
+
 def free_fraction(mesh, cameras, tolerance: float, pitch: float) -> float:
     """Share of the volume of closed `mesh` that lies in known free space (grid at `pitch`)."""
     from .meshops import grid_points, inside

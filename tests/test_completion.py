@@ -392,3 +392,20 @@ def test_open_background_scan_gives_support_and_wall_planes():
     assert abs(res.mesh.bounds[0, 2]) < 1e-3              # extended down to the floor
     assert res.mesh.bounds[1, 1] <= 0.1 + 1e-6            # not through the wall
     assert chamfer(res.mesh, gt) < 0.002
+
+
+def test_capped_mesh_counts_only_camera_confirmed_surface():
+    # A repair capped the unseen back of a scan: the closed mesh alone looks fully observed; the
+    # depth maps show the cap was never seen, so completion still runs.
+    gt = trimesh.creation.icosphere(4, radius=0.05)
+    gt.apply_translation([0, 0, 0.05])
+    capped = from_manifold(to_manifold(gt).trim_by_plane((0, -1, 0), 0.0))    # front half, closed
+    assert capped.is_watertight
+    cam = _camera(np.array([0.05, -0.4, 0.15]), [0, 0, 0.05], w=160, h=120, f=200.0)
+    depth = _depth(gt, cam)
+    alone = complete(capped, {"voxel_size": VOXEL})
+    assert alone.method == "none" and "fully observed" in alone.reason
+    res = complete(capped, {"voxel_size": VOXEL, "cameras": [cam], "depths": [depth]})
+    assert res.completed and "unseen by any camera ignored" in res.reason, res.reason
+    assert res.coverage < min(alone.coverage - 0.1, 0.9)
+    assert chamfer(res.mesh, gt) < 0.003
