@@ -3,24 +3,13 @@ import numpy as np
 import pytest
 import torch
 
+from psimap.camera import orbit
 from psimap.data.frames import ClassInfo, Frame
 from psimap.metrics.panoptic import panoptic_metrics
 from psimap.panoptic.field import PanopticConfig, fit_panoptic
 from psimap.render import rasterize
 
 CLASSES = [ClassInfo(1, "floor", False), ClassInfo(2, "box", True)]
-
-
-def _look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([x, y, z], 1)
-    c2w[:3, 3] = eye
-    return c2w
 
 
 def _two_box_scene(n_frames=10, w=48, h=36, seed=0):
@@ -32,8 +21,7 @@ def _two_box_scene(n_frames=10, w=48, h=36, seed=0):
     a = trimesh.creation.box([0.3, 0.3, 0.3], trimesh.transformations.translation_matrix([-0.35, 0, 0.15]))
     b = trimesh.creation.box([0.25, 0.25, 0.4], trimesh.transformations.translation_matrix([0.35, 0.1, 0.2]))
     K = np.array([[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]])
-    c2ws = [_look_at(np.array([1.6 * np.cos(t), 1.6 * np.sin(t), 1.0]), [0, 0, 0.15])
-            for t in np.linspace(0, 2 * np.pi, n_frames, endpoint=False)]
+    c2ws = orbit(n_frames, radius=1.6, height=0.85, target=(0, 0, 0.15))
     cams = {"K": np.stack([K] * n_frames), "c2w": np.stack(c2ws), "width": w, "height": h,
             "names": [f"f{i}" for i in range(n_frames)]}
     scene = scene_from_meshes([floor, a, b], [0, 1, 2], [1, 2, 2], CLASSES, cams, spacing=0.06)

@@ -1,0 +1,30 @@
+"""Camera helpers shared by every stage (OpenCV convention: x right, y down, z forward; world Z-up)."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world [4, 4] (OpenCV axes) at `eye` looking at `target`.
+
+    When the view direction is parallel to `up` (looking straight down or up), the image x axis is
+    taken along world x so the pose is still well defined.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(x) < 1e-6:
+        x = np.array([1.0, 0.0, 0.0])
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
+    return c2w
+
+
+def orbit(n: int, radius: float, height: float, target=(0.0, 0.0, 0.0)) -> list[np.ndarray]:
+    """n camera-to-world poses evenly spaced on a horizontal circle, all looking at `target`."""
+    t = np.asarray(target, dtype=np.float64)
+    return [look_at(t + np.array([radius * np.cos(a), radius * np.sin(a), height]), t)
+            for a in np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)]
