@@ -177,8 +177,8 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
         return _unchanged(partial, "none", f"fully observed: coverage {coverage:.2f} >= {threshold:.2f}{note}",
                           coverage=coverage, tolerance=tol, seconds=time.perf_counter() - t0)
 
-    planes += planes_from_background(background, points, reach=2.0 * extent)
-    support = support_below(planes, points, reach=1.5 * extent + 3 * tol)
+    planes += planes_from_background(background, points, reach=2.0 * extent, radius=max(4 * tol, 0.02))
+    support = support_below(planes, points, reach=1.5 * extent + 3 * tol, tolerance=3 * tol)
     blocking = blocking_planes(planes, points, tol)
     # Only what is near the object matters: cameras that see its surroundings, neighbours whose
     # bounds come within one object extent (the export pipeline passes all of them).

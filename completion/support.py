@@ -40,42 +40,65 @@ def normalise_planes(raw, centre: np.ndarray) -> list[tuple[np.ndarray, float]]:
     return planes
 
 
-def planes_from_background(background, points: np.ndarray, reach: float) -> list[tuple[np.ndarray, float]]:
+def planes_from_background(background, points: np.ndarray, reach: float,
+                           radius: float = 0.03) -> list[tuple[np.ndarray, float]]:
     """Planes of the background surfaces the object faces: rays from the centre of points [P, 3]
-    along ±x, ±y, -z hit the background within `reach`; each hit face gives a plane."""
+    along ±x, ±y, and straight down from a 3 x 3 ring of origins around it (the floor right under
+    an object was never seen, so a scan has a hole there), hit the background within `reach`; each
+    hit gives a plane fitted (PCA) to the background vertices within `radius` of it — a scanned
+    (TSDF) surface's single facets tilt with the noise; near-duplicates are merged."""
     import open3d as o3d
 
     from .meshops import raycasting_scene
 
     if background is None or len(background.faces) == 0:
         return []
-    centre = 0.5 * (points.min(0) + points.max(0))
-    dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]], dtype=np.float64)
-    rays = np.concatenate([np.repeat(centre[None], len(dirs), 0), dirs], axis=1).astype(np.float32)
+    lo, hi = points.min(0), points.max(0)
+    centre = 0.5 * (lo + hi)
+    r = 0.75 * float((hi - lo)[:2].max()) + 1e-6
+    origins = [centre] * 4 + [centre + [dx, dy, 0.0] for dx in (-r, 0.0, r) for dy in (-r, 0.0, r)]
+    dirs = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]] + [[0, 0, -1]] * 9
+    origins, dirs = np.asarray(origins, dtype=np.float64), np.asarray(dirs, dtype=np.float64)
+    rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
     hit = raycasting_scene(background).cast_rays(o3d.core.Tensor(rays))
     t = hit["t_hit"].numpy()
     normals = hit["primitive_normals"].numpy().astype(np.float64)
-    planes = []
+    from scipy.spatial import cKDTree
+
+    verts = np.asarray(background.vertices, dtype=np.float64)
+    tree = cKDTree(verts)
+    planes: list[tuple[np.ndarray, float]] = []
     for k in range(len(dirs)):
         if not (np.isfinite(t[k]) and t[k] <= reach):
             continue
+        p = origins[k] + t[k] * dirs[k]
         n = normals[k] / max(np.linalg.norm(normals[k]), 1e-12)
-        p = centre + t[k] * dirs[k]
-        d = float(n @ p)
+        near = verts[tree.query_ball_point(p, radius)]
+        if len(near) >= 6:
+            q = near - near.mean(0)
+            fitted = np.linalg.svd(q, full_matrices=False)[2][2]
+            if abs(fitted @ n) > 0.5:           # same surface, denoised orientation
+                n = fitted if fitted @ n > 0 else -fitted
+        # Median offset of the patch: a scan's hole rims curl away and would drag a mean.
+        d = float(np.median(near @ n)) if len(near) >= 6 else float(n @ p)
         if n @ centre - d < 0:
             n, d = -n, -d
+        if any(n @ q > 0.98 and abs(d - e) < 0.01 for q, e in planes):
+            continue
         planes.append((n, d))
     return planes
 
 
-def support_below(planes, points: np.ndarray, reach: float):
-    """The nearest plane under points [P, 3] that faces up, within `reach` of the lowest point."""
+def support_below(planes, points: np.ndarray, reach: float, tolerance: float = 0.0):
+    """The nearest plane under points [P, 3] that faces up: the lowest point lies above it by at
+    most `reach` and below it by at most `tolerance` (noise), so a plane through the object is not
+    taken for its support."""
     best, best_gap = None, np.inf
     for n, d in planes:
         if n @ UP < _SUPPORT_COS:
             continue
         gap = float((points @ n - d).min())
-        if -reach <= gap <= reach and gap < best_gap:
+        if -tolerance <= gap <= reach and gap < best_gap:
             best, best_gap = (n, d), gap
     return best
 
