@@ -57,8 +57,9 @@ def ycb_table(tmp: Path):
              f"{r['timings']['sim_seconds_per_wall_second']:.1f} sim s / wall s; writers + check "
              f"{total:.1f} s; USD validation errors: {len(r['usd_validation']['errors'])}. "
              f"Median |mass error| {np.median(errs):.0f} %. Densities are class knowledge, not fitted: "
-             "the YCB banana is a hollow plastic replica and the YCB mug and bowl are plastic, while the "
-             "table assumes real fruit and ceramic tableware, hence their large errors.")
+             "the YCB banana is a hollow plastic replica and the YCB mug is plastic, while the table "
+             "assumes real fruit and ceramic tableware (over-estimates); the bowl's scanned wall encloses "
+             "less material than the real bowl (under-estimate even at ceramic density).")
     append_results("Export: YCB scans, mass vs real, decimation, collider, settle", markdown_table(header, rows),
                    notes, "python benchmarks/export.py")
 
