@@ -1,0 +1,252 @@
+"""Panoptic benchmark: psimap's panoptic field vs the naive lift-and-merge baseline, and Top-K.
+
+Synthetic scenes (`psimap.data.synthetic.generate`) at pseudo-label noise 0 %, 15 % and 30 %
+(merges, splits, misses, class flips; instance ids permuted in every frame). Geometry is fixed to
+the ground truth: surfels from `scene_from_meshes` on gt/objects plus the stuff faces of
+gt/mesh.ply, so the panoptic part is measured alone. On the same frames, in the same run:
+- psimap: `fit_panoptic` (queries, Hungarian supervision, query adjustment) -> hard surfel labels;
+- baseline: `baseline_panoptic` (per-frame masks lifted to voxels, merged greedily by IoM);
+- oracle: the GT surfel labels rendered the same way (the ceiling of this evaluation protocol).
+Labels of every frame are rendered with `render_labels` and scored against the GT label maps:
+scene-level PQ, SQ, RQ, mIoU, mCov; training time; final query count and instance count vs the
+true object count. Then Top-K K in {1, 2, 4, 8, 16, full}: label-rendering time per frame and PQ
+(plotted to bench_out/panoptic_topk.png). Appends the tables to benchmarks/RESULTS.md.
+
+    .venv/bin/python benchmarks/panoptic.py [--quick] [--seeds 0 1] [--iters 300]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import asdict, fields
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import append_results, markdown_table  # noqa: E402
+
+OUT_DIR = Path(__file__).resolve().parents[1] / "bench_out"
+NOISES = (0.0, 0.15, 0.30)
+TOPKS = (1, 2, 4, 8, 16, None)
+
+
+def gt_scene(root, seq, coarsen: float = 1.0):
+    """Scene of GT geometry with GT hard labels: object meshes + stuff faces of gt/mesh.ply."""
+    import trimesh
+
+    import torch
+
+    from psimap.data.scene_format import read_gt
+    from psimap.scene import Scene, scene_from_meshes
+
+    gt = read_gt(root)
+    cls = {int(r["id"]): int(r["semantic"]) for r in gt.instances}
+    meshes, iids, sids = [], [], []
+    for iid, path in sorted(gt.objects.items()):
+        meshes.append(trimesh.load(path, force="mesh", process=False))
+        iids.append(iid)
+        sids.append(cls.get(iid, 0))
+    stuff = gt.face_instance == 0
+    for s in np.unique(gt.face_semantic[stuff]):
+        faces = np.flatnonzero(stuff & (gt.face_semantic == s))
+        meshes.append(gt.mesh.submesh([faces], append=True))
+        iids.append(0)
+        sids.append(int(s))
+    frames = [seq[i] for i in range(len(seq))]
+    cams = {"K": np.stack([f.K for f in frames]), "c2w": np.stack([f.c2w for f in frames]),
+            "width": frames[0].width, "height": frames[0].height, "names": [f.name for f in frames]}
+    classes = [{"id": c.id, "name": c.name, "isthing": c.isthing} for c in seq.classes]
+    n_obj = len(gt.objects)
+    room = scene_from_meshes(meshes[n_obj:], iids[n_obj:], sids[n_obj:], classes, cams)
+    if coarsen != 1.0:      # fewer surfels on the big flat room surfaces: a CPU-time budget knob
+        room = scene_from_meshes(meshes[n_obj:], iids[n_obj:], sids[n_obj:], classes, cams,
+                                 spacing=coarsen * room.config["spacing"])
+    # Objects at half the room's spacing (one pixel): small things (mugs, bottles) span few pixels
+    # and blurred silhouettes would cap even the oracle's IoU; their area is small, so it is cheap.
+    spacing = 0.5 * room.config["spacing"] / coarsen
+    objs = scene_from_meshes(meshes[:n_obj], iids[:n_obj], sids[:n_obj], classes, cams, spacing=spacing)
+    surfels = {k: torch.cat([room.surfels[k], objs.surfels[k]]) for k in room.surfels}
+    return Scene(surfels, classes=classes, cameras=room.cameras), n_obj
+
+
+def with_labels(scene, instance_id, semantic_id):
+    import torch
+
+    from psimap.scene import Scene
+
+    s = dict(scene.surfels)
+    s["instance_id"] = torch.as_tensor(np.asarray(instance_id), dtype=torch.int64)
+    s["semantic_id"] = torch.as_tensor(np.asarray(semantic_id), dtype=torch.int64)
+    return Scene(s, classes=scene.classes, cameras=scene.cameras)
+
+
+def score(scene, frames, things, topk=None):
+    """(panoptic metrics of the rendered labels of every frame, seconds per frame of rendering)."""
+    from psimap.metrics.panoptic import panoptic_metrics
+    from psimap.panoptic.labels import render_labels
+
+    seq, t = [], 0.0
+    for f in frames:
+        t0 = time.perf_counter()
+        inst, sem = render_labels(scene, f.K, f.c2w, f.width, f.height, topk=topk)
+        t += time.perf_counter() - t0
+        seq.append((sem, inst, f.gt_semantic, f.gt_instance))
+    return panoptic_metrics(seq, thing_classes=things), t / len(frames)
+
+
+def run_psimap(scene, frames, iters, cfg, seed):
+    import torch
+
+    from psimap.panoptic.field import fit_panoptic
+
+    surf = {k: scene.surfels[k].float() for k in ("means", "quats", "scales", "opacities")}
+    t0 = time.perf_counter()
+    state = fit_panoptic(surf, frames, scene.classes, iters=iters, cfg=cfg, seed=seed, backend="auto")
+    dt = time.perf_counter() - t0
+    torch.set_num_threads(torch.get_num_threads())
+    s = state["surfels"]
+    return with_labels(scene, s["instance_id"], s["semantic_id"]), dt, int(state["queries"]["feature"].shape[0])
+
+
+def run_baseline(scene, frames):
+    from psimap.panoptic.baseline import baseline_panoptic
+
+    t0 = time.perf_counter()
+    out = baseline_panoptic(scene.surfels["means"], frames, scene.classes)
+    dt = time.perf_counter() - t0
+    return with_labels(scene, out["instance_id"], out["semantic_id"]), dt, out["segments"]
+
+
+def n_instances(scene) -> int:
+    ids = scene.instance_ids()
+    return int((ids.unique() > 0).sum())
+
+
+def plot_topk(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from psimap.io_utils import atomic_path
+
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    ms = [r[2] * 1000 for r in rows]
+    pq = [r[1] for r in rows]
+    ax.plot(ms, pq, "o-")
+    for r, x, y in zip(rows, ms, pq):
+        ax.annotate(f"K={r[0]}", (x, y), textcoords="offset points", xytext=(4, -10), fontsize=8)
+    ax.set_xlabel("label rendering time per frame (ms)")
+    ax.set_ylabel("scene PQ")
+    ax.set_title("Top-K label rendering: speed vs PQ")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def main() -> None:
+    import torch
+
+    from psimap.data import load
+    from psimap.data.synthetic import generate
+    from psimap.panoptic.field import PanopticConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one seed, 16 frames 96x72, noise 15 %% only, "
+                    "few iterations; RESULTS.md untouched")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--iters", type=int, default=300)
+    ap.add_argument("--size", type=int, nargs=2, default=[160, 120], metavar=("W", "H"))
+    ap.add_argument("--coarsen", type=float, default=1.0,
+                    help="room surfel spacing x this (objects keep a finer one); fewer surfels, less CPU")
+    ap.add_argument("--noises", type=float, nargs="+", default=list(NOISES))
+    ap.add_argument("--cfg", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="PanopticConfig overrides, e.g. iom_threshold=0.5 (a tuning experiment)")
+    ap.add_argument("--no-topk", action="store_true", help="skip the Top-K sweep")
+    args = ap.parse_args()
+    width, height = args.size
+    if args.quick:
+        args.seeds, args.frames, args.iters, args.noises = args.seeds[:1], 16, 60, [0.15]
+        width, height = 96, 72
+    types = {f.name: f.type for f in fields(PanopticConfig)}
+    over = {}
+    for kv in args.cfg:
+        k, v = kv.split("=", 1)
+        over[k] = {"int": int, "float": float}.get(types[k], float)(v)
+    cfg = PanopticConfig(**over)
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    rows, topk_rows = [], []
+    per_method = {}
+    tmp = Path(tempfile.mkdtemp(prefix="psimap_bench_panoptic_"))
+    for seed in args.seeds:
+        geom = None
+        for noise in args.noises:
+            root = tmp / f"s{seed}_n{int(noise * 100)}"
+            generate(root, seed, frames=args.frames, width=width, height=height, label_noise=noise,
+                     progress=False)
+            seq = load(root)
+            frames = [seq[i] for i in range(len(seq))]
+            things = [c.id for c in seq.classes if c.isthing]
+            if geom is None:                          # same layout and cameras for every noise level
+                geom, n_true = gt_scene(root, seq, args.coarsen)
+                oracle, _ = score(geom, frames, things)
+                print(f"seed {seed}: {len(geom)} GT surfels, {n_true} objects, oracle PQ {oracle['pq']:.3f}",
+                      flush=True)
+            visible = len({int(i) for f in frames for i in np.unique(f.gt_instance) if i > 0})
+            for method in ("psimap", "baseline"):
+                if method == "psimap":
+                    pred, dt, count = run_psimap(geom, frames, args.iters, cfg, seed)
+                else:
+                    pred, dt, count = run_baseline(geom, frames)
+                m, _ = score(pred, frames, things)
+                inst = n_instances(pred)
+                row = [seed, f"{noise:.0%}", method, m["pq"], m["sq"], m["rq"], m["pq_thing"], m["miou"],
+                       m["mcov"], dt, count, inst, visible, oracle["pq"]]
+                rows.append(row)
+                per_method.setdefault((method, noise), []).append(row)
+                print(markdown_table(HEADER, [row]).splitlines()[-1], flush=True)
+                if method == "psimap" and not args.no_topk and abs(noise - 0.15) < 1e-9 and seed == args.seeds[0]:
+                    for k in TOPKS:
+                        mk, t = score(pred, frames, things, topk=k)
+                        topk_rows.append(["full" if k is None else k, mk["pq"], t, mk["miou"]])
+                        print(f"  top-k {topk_rows[-1][0]}: PQ {mk['pq']:.4f} {t * 1000:.1f} ms/frame", flush=True)
+    mean_rows = []
+    for (method, noise), rs in sorted(per_method.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        a = np.array([r[3:12] for r in rs], dtype=float)
+        mean_rows.append([f"{noise:.0%}", method, *a.mean(0).tolist(), float(np.mean([r[12] for r in rs]))])
+    cmd = "python benchmarks/panoptic.py " + " ".join(sys.argv[1:])
+    notes = (f"{args.frames} frames {width}x{height} per scene (room surfel spacing x{args.coarsen}), seeds {args.seeds}; fit_panoptic iters "
+             f"{args.iters}, PanopticConfig overrides {over or 'none'}; geometry = GT surfels "
+             f"(scene_from_meshes). 'queries' = final query count (baseline: merged 3D segments), "
+             f"'instances' = instance ids on surfels after export, 'objects' = GT objects seen by a frame. "
+             f"Oracle = GT surfel labels rendered the same way. Times are wall seconds on a shared CPU.")
+    if topk_rows:
+        OUT_DIR.mkdir(exist_ok=True)
+        plot_topk(topk_rows, OUT_DIR / "panoptic_topk.png")
+    if args.quick:
+        print(markdown_table(HEADER, rows))
+        print(markdown_table(["K", "PQ", "s/frame", "mIoU"], topk_rows))
+        return
+    append_results("Panoptic: psimap field vs naive lift-and-merge baseline (GT geometry)",
+                   markdown_table(HEADER, rows) + "\n\nMeans over seeds:\n\n"
+                   + markdown_table(MEAN_HEADER, mean_rows), notes, cmd)
+    if topk_rows:
+        append_results("Panoptic: Top-K label rendering, speed vs PQ (psimap labels, 15 % noise)",
+                       markdown_table(["K", "scene PQ", "render s/frame", "mIoU"], topk_rows),
+                       "Plot: bench_out/panoptic_topk.png. One-hot hard labels blended over the K largest "
+                       "weights per pixel (two passes: instance, class).", cmd)
+
+
+HEADER = ["seed", "noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "queries",
+          "instances", "objects", "oracle PQ"]
+MEAN_HEADER = ["noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "queries",
+               "instances", "objects"]
+
+if __name__ == "__main__":
+    main()
