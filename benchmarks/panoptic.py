@@ -240,7 +240,7 @@ def main() -> None:
         append_results("Panoptic: Top-K label rendering, speed vs PQ (psimap labels, 15 % noise)",
                        markdown_table(["K", "scene PQ", "render s/frame", "mIoU"], topk_rows),
                        "Plot: bench_out/panoptic_topk.png. One-hot hard labels blended over the K largest "
-                       "weights per pixel (two passes: instance, class).", cmd)
+                       "weights per pixel (instance and class channels in one pass).", cmd)
 
 
 HEADER = ["seed", "noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "queries",

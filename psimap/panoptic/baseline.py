@@ -156,9 +156,9 @@ def baseline_panoptic(means, frames, classes, cfg: BaselineConfig | None = None,
             sel = inst == mid
             cls_px = sem[sel]
             cls = int(np.bincount(cls_px).argmax()) if cls_px.size else 0
-            if semantic_known := (f.semantic is not None):
-                if cls not in things:            # stuff is semantic only
-                    continue
+            semantic_known = f.semantic is not None
+            if semantic_known and cls not in things:    # stuff is semantic only
+                continue
             mkeys = np.unique(keys[sel])
             j, iom = segs.best_match(mkeys)
             if j >= 0 and iom >= cfg.match_iom:

@@ -35,39 +35,49 @@ def instance_classes(scene) -> dict[int, int]:
     return {int(i): int(c) for i, c in pairs[last]}
 
 
-def _argmax_ids(scene, ids_per_surfel: np.ndarray, viewmat, K, width: int, height: int, topk, backend):
-    """Per pixel, the id whose one-hot channel has the largest blended weight, and alpha.
+def _argmax_ids(scene, groups: list[np.ndarray], viewmat, K, width: int, height: int, topk, backend):
+    """Per pixel and per id group, the id whose one-hot channel has the largest blended weight.
 
-    ids_per_surfel: [N] int64 -> (label [H, W] int64, alpha [H, W] float32). The id 0 (none) is a
-    channel too, so a stuff surface in front of an object hides it.
+    groups: id arrays [N] int64 (e.g. instance ids, class ids), rendered together as one channel
+    list (chunked by CHANNELS_PER_PASS) -> ([label [H, W] int64 per group], alpha [H, W]). The id 0
+    (none) is a channel too, so a stuff surface in front of an object hides it.
     """
     import torch
 
     from psimap.render import rasterize
 
     s = scene.surfels
-    values, inverse = np.unique(ids_per_surfel, return_inverse=True)
-    inverse = torch.as_tensor(inverse.reshape(-1), dtype=torch.long)
-    best = torch.full((height, width), -1.0)
-    label = torch.zeros((height, width), dtype=torch.long)
+    uniq = [np.unique(g, return_inverse=True) for g in groups]
+    values = [u[0] for u in uniq]
+    inverse = [torch.as_tensor(u[1].reshape(-1), dtype=torch.long) for u in uniq]
+    offsets = np.cumsum([0] + [len(v) for v in values])
+    best = [torch.full((height, width), -1.0) for _ in groups]
+    label = [torch.zeros((height, width), dtype=torch.long) for _ in groups]
     alpha = None
-    for start in range(0, len(values), CHANNELS_PER_PASS):
-        stop = min(len(values), start + CHANNELS_PER_PASS)
-        inside = (inverse >= start) & (inverse < stop)
-        # Surfels of other chunks still occlude (zero feature rows), so every pass renders all.
-        onehot = torch.zeros(len(inverse), stop - start)
-        onehot[inside, inverse[inside] - start] = 1.0
+    n = int(s["means"].shape[0])
+    for start in range(0, int(offsets[-1]), CHANNELS_PER_PASS):
+        stop = min(int(offsets[-1]), start + CHANNELS_PER_PASS)
+        # Surfels without a channel in this chunk still occlude (zero feature rows).
+        onehot = torch.zeros(n, stop - start)
+        for g, inv in enumerate(inverse):
+            ch = inv + int(offsets[g])
+            inside = (ch >= start) & (ch < stop)
+            onehot[inside.nonzero().flatten(), ch[inside] - start] = 1.0
         with torch.no_grad():
             out = rasterize(s["means"].float(), s["quats"].float(), s["scales"].float(),
                             s["opacities"].float(), s["colors"].float(), viewmat, K, width, height,
                             features=onehot, topk=topk, backend=backend)
-        w, j = out.features.max(-1)
-        better = w > best
-        best = torch.where(better, w, best)
-        label = torch.where(better, j + start, label)
         alpha = out.alpha
-    ids = torch.as_tensor(values, dtype=torch.long)[label]
-    return ids.numpy(), alpha.numpy()
+        for g in range(len(groups)):
+            lo, hi = max(start, int(offsets[g])), min(stop, int(offsets[g + 1]))
+            if lo >= hi:
+                continue
+            w, j = out.features[..., lo - start:hi - start].max(-1)
+            better = w > best[g]
+            best[g] = torch.where(better, w, best[g])
+            label[g] = torch.where(better, j + (lo - int(offsets[g])), label[g])
+    ids = [torch.as_tensor(v, dtype=torch.long)[lab].numpy() for v, lab in zip(values, label)]
+    return ids, alpha.numpy()
 
 
 def render_labels(scene, K, c2w, width: int, height: int, topk: int | None = None,
@@ -94,8 +104,7 @@ def render_labels(scene, K, c2w, width: int, height: int, topk: int | None = Non
     Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32)
     inst_ids = scene.instance_ids().numpy().astype(np.int64)
     sem_ids = scene.semantic_ids().numpy().astype(np.int64)
-    inst, alpha = _argmax_ids(scene, inst_ids, viewmat, Kt, width, height, topk, backend)
-    sem, _ = _argmax_ids(scene, sem_ids, viewmat, Kt, width, height, topk, backend)
+    (inst, sem), alpha = _argmax_ids(scene, [inst_ids, sem_ids], viewmat, Kt, width, height, topk, backend)
     covered = alpha > MIN_ALPHA
     return np.where(covered, inst, 0), np.where(covered, sem, 0)
 
