@@ -33,7 +33,7 @@ def _two_box_scene(n_frames=10, w=48, h=36, seed=0):
     for i, c2w in enumerate(c2ws):
         out = rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
                         torch.as_tensor(np.linalg.inv(c2w)).float(), torch.as_tensor(K).float(), w, h,
-                        features=torch.cat([onehot, sem1], 1))
+                        features=torch.cat([onehot, sem1], 1), backend="auto")
         cover = out.alpha.numpy() > 0.5
         gi = np.where(cover, out.features[..., :3].argmax(-1).numpy(), 0)
         gs = np.where(cover, out.features[..., 3:].argmax(-1).numpy(), 0)
@@ -62,7 +62,7 @@ def test_shuffled_ids_become_one_consistent_id_per_object():
     for fr, (gs, gi) in zip(frames, gts):
         out = rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
                         torch.as_tensor(np.linalg.inv(fr.c2w)).float(), torch.as_tensor(fr.K).float(),
-                        fr.width, fr.height, features=torch.cat([onehot, semh], 1))
+                        fr.width, fr.height, features=torch.cat([onehot, semh], 1), backend="auto")
         cover = out.alpha.numpy() > 0.5
         pi = np.where(cover, out.features[..., :onehot.shape[1]].argmax(-1).numpy(), 0)
         ps = np.where(cover, out.features[..., onehot.shape[1]:].argmax(-1).numpy(), 0)
