@@ -60,6 +60,18 @@ class TrainConfig:
     spacing_pixels: float = _f(3.0, "target surfel spacing in pixels at the median viewing distance "
                                     "(finer detail cannot be seen by the training views)")
 
+    # ---- panoptic field (paper §4), trained jointly with geometry after densification ------------
+    panoptic: bool = _f(True, "train the panoptic field when the frames carry semantic / instance "
+                              "pseudo-labels")
+    panoptic_iters: int = _f(400, "joint steps (geometry + panoptic losses) after the geometry "
+                                  "schedule, on the frozen surfel set")
+    lambda_ins: float = _f(1.0, "lambda_3: L_ins, Dice + BCE of Hungarian-matched query masks")
+    lambda_sem: float = _f(1.0, "lambda_4: L_sem, cross-entropy of the rendered semantic logits")
+    panoptic_topk: int = _f(8, "Top-K hard selection: features blend over the K largest weights")
+    panoptic_feat_dim: int = _f(16, "instance feature size per surfel and query")
+    panoptic_geometry: bool = _f(True, "panoptic losses also move geometry (False: geometry frozen "
+                                       "during the panoptic steps)")
+
     # ---- data -----------------------------------------------------------------------------------
     max_frames: int = _f(300, "use at most this many frames (evenly spaced)")
     max_width: int = _f(320, "train at most this image width (larger frames are block-averaged "

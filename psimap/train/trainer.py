@@ -33,6 +33,8 @@ class TrainFrame:
     K: torch.Tensor
     c2w: np.ndarray
     viewmat: torch.Tensor
+    semantic: torch.Tensor | None = None   # [H,W] long per-frame pseudo-labels (0 = none), or None
+    instance: torch.Tensor | None = None
 
     @property
     def height(self) -> int:
@@ -79,11 +81,22 @@ def downscale(rgb, depth, K, factor: int):
     return r.astype(np.float32), dd.astype(np.float32), K2
 
 
-def _to_train_frame(name, rgb, depth, K, c2w) -> TrainFrame:
+def downscale_labels(label, factor: int, shape):
+    """Nearest-neighbour label map [H,W] at 1/factor (the block's centre pixel), cropped to `shape`."""
+    if label is None:
+        return None
+    lab = np.asarray(label).astype(np.int64)
+    if factor > 1:
+        lab = lab[factor // 2::factor, factor // 2::factor]
+    return torch.from_numpy(np.ascontiguousarray(lab[: shape[0], : shape[1]]))
+
+
+def _to_train_frame(name, rgb, depth, K, c2w, semantic=None, instance=None) -> TrainFrame:
     return TrainFrame(name=name, rgb=torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
                       depth=torch.from_numpy(np.ascontiguousarray(depth, np.float32)),
                       K=torch.as_tensor(K, dtype=torch.float32), c2w=np.asarray(c2w, np.float64),
-                      viewmat=torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32))
+                      viewmat=torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
+                      semantic=semantic, instance=instance)
 
 
 def prepare_frames(seq, cfg: TrainConfig, log=print):
@@ -111,7 +124,9 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
             continue
         factor = max(1, int(math.ceil(f.width / cfg.max_width)))
         r, d, K = downscale(rgb, depth, f.K, factor)
-        frames.append(_to_train_frame(f.name or str(i), r, d, K, f.c2w))
+        frames.append(_to_train_frame(f.name or str(i), r, d, K, f.c2w,
+                                      downscale_labels(f.semantic, factor, d.shape),
+                                      downscale_labels(f.instance, factor, d.shape)))
         r2, d2, K2 = downscale(r, d, K, 2)
         low.append(_to_train_frame(f.name or str(i), r2, d2, K2, f.c2w))
     if skipped:
@@ -440,6 +455,18 @@ def _train(data, cfg, *, resume, progress, log, callback):
         keep = torch.sigmoid(params["opacity_logit"]) >= cfg.prune_opacity
         for k in PARAM_NAMES:
             params[k] = params[k].detach()[keep]
+    panoptic_state, panoptic_metrics = None, {}
+    classes = list(getattr(seq, "classes", []) or [])
+    if cfg.panoptic and cfg.panoptic_iters > 0:
+        from psimap.train.panoptic_phase import has_labels, panoptic_phase
+
+        if has_labels(frames):
+            panoptic_state, panoptic_metrics = panoptic_phase(
+                params, frames, classes, cfg, index=index, spacing=spacing, extent=extent,
+                lr_means=optimizer.param_groups[0]["lr"], generator=gen, rng=rng, log=log,
+                progress=progress)
+        else:
+            log("panoptic: the frames carry no semantic / instance pseudo-labels; skipped")
     depth_err_end = depth_error(params, eval_frames)
     loss_end = {k: float(np.mean([r[k] for r in recent if k in r])) for k in (recent[-1] if recent else {})}
     seconds = time.perf_counter() - t_start
@@ -454,13 +481,18 @@ def _train(data, cfg, *, resume, progress, log, callback):
                "spacing": spacing, "extent": extent,
                "loss_start": first_loss or {}, "loss_end": loss_end, "depth_l1_start": depth_err_start,
                "depth_l1_end": depth_err_end, "skipped_frames": skipped, "skipped_steps": skipped_steps,
-               "history": history, "densify": dens_log}
+               "history": history, "densify": dens_log, **panoptic_metrics}
     cams = {"K": torch.stack([fr.K.double() for fr in frames]),
             "c2w": torch.as_tensor(np.stack([fr.c2w for fr in frames])),
             "width": frames[0].width, "height": frames[0].height, "names": [fr.name for fr in frames]}
     config = {**cfg.to_dict(), "data": data_path}
-    return Scene(surfel_values(params), classes=list(getattr(seq, "classes", []) or []), cameras=cams,
-                 config=config, metrics=metrics)
+    surfels = surfel_values(params)
+    queries = None
+    if panoptic_state is not None:
+        surfels.update(panoptic_state["surfels"])
+        queries = panoptic_state["queries"]
+        metrics["instance_class"] = {int(k): int(v) for k, v in panoptic_state["instance_class"].items()}
+    return Scene(surfels, classes=classes, cameras=cams, queries=queries, config=config, metrics=metrics)
 
 
 def _set_threads(cfg: TrainConfig) -> None:
