@@ -102,24 +102,205 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
 
     params = derive_params(depths, Ks, c2ws, voxel_size=voxel_size)
     obj_voxel = params.voxel_size * 0.5
-    from scipy.ndimage import binary_erosion
 
+    s = scene.surfels
     for t in things:
-        # one-pixel erosion: boundary pixels blend the object's splats over what lies behind, and
-        # fusing them grows a skirt around the silhouette
-        masks = [binary_erosion(m == t.instance_id) for m in maps]
-        seen = [k for k, m in enumerate(masks) if int(m.sum()) >= MIN_PIXELS]
+        seen = [k for k, m in enumerate(maps) if int((m == t.instance_id).sum()) >= MIN_PIXELS]
         if not seen:
             continue
+        sel = iid == t.instance_id
         try:
-            t.mesh = fuse_tsdf([depths[k] for k in seen], [Ks[k] for k in seen], [c2ws[k] for k in seen],
-                               colors=[colors[k] for k in seen], masks=[masks[k] for k in seen],
-                               voxel_size=obj_voxel, depth_max=params.depth_max, keep_fraction=0.2)
+            t.mesh = fuse_instance({k: s[k][torch.as_tensor(sel)] for k in ("means", "quats", "scales",
+                                                                            "opacities", "colors")},
+                                   [views[k] for k in seen], depth_max=params.depth_max)
         except RuntimeError:    # Open3D aborts when the masked depth touches no voxel block
             t.mesh = None
+    # support-aware bottoms: the discs of the sides hang below the support; cut every object at the
+    # up-facing stuff surface under it (floor, table) and cap it there, so it rests on its support
+    stuff = np.isin(iid, list(stuff_ids)) | (iid == 0)
+    up = surfel_normals(s["quats"])
+    up_stuff = stuff & (up[:, 2] > 0.9)
+    for t in things:
+        if t.mesh is not None and len(t.mesh.faces):
+            t.mesh = _tightest_sound(t.mesh, s, iid == t.instance_id, s["means"].detach().numpy()[up_stuff])
+    obj_voxel = min([getattr(t.mesh, "voxel_size", obj_voxel) for t in things if t.mesh is not None] or [obj_voxel])
     bg_masks = [np.isin(m, list(stuff_ids)) & (m >= 0) for m in maps]
     background = None
     if sum(int(m.sum()) for m in bg_masks) >= 16:
         background = fuse_tsdf(depths, Ks, c2ws, colors=colors, masks=bg_masks, voxel_size=params.voxel_size,
                                depth_max=params.depth_max)
     return InstanceMeshes(things, background, views, maps, obj_voxel)
+
+
+def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float = 1.5,
+                  max_side: int = 640):
+    """TSDF mesh of one instance from its own surfels rendered alone in each view that sees it.
+
+    surfels: the instance's "means" [n,3], "quats" [n,4], "scales" [n,2], "opacities" [n],
+    "colors" [n,3]. Rendering the instance alone gives its exact silhouette (no blending with what
+    lies behind it at the border, which fattens a masked full render by a pixel all round), and
+    the render is supersampled so the pixel footprint falls under the voxel, which is tied to the
+    surfel size (the finest detail the map holds). Returns trimesh with `.voxel_size` set.
+    """
+    import torch
+
+    from psimap.geometry.tsdf import fuse_tsdf
+    from psimap.render import rasterize
+
+    means = surfels["means"].detach().to(torch.float32)
+    # voxel: half the median surfel radius... bounded below by what the renders can resolve
+    voxel = float(torch.median(surfels["scales"].detach().max(dim=1).values)) * 0.75
+    depths, Ks, c2ws, cols = [], [], [], []
+    for v in views:
+        h, w = v.depth.shape
+        cam = np.linalg.inv(v.c2w)
+        pc = means.numpy().astype(np.float64) @ cam[:3, :3].T + cam[:3, 3]
+        z = pc[:, 2][pc[:, 2] > 1e-3]
+        if len(z) == 0:
+            continue
+        footprint = float(np.median(z)) / float(v.K[0, 0])
+        scale = min(max(1.0, px_per_voxel * footprint / voxel), max_side / max(h, w))
+        K = np.array(v.K, np.float64).copy()
+        K[:2] *= scale
+        K[0, 2] += 0.5 * (scale - 1)    # pixel centres stay aligned: (u + 0.5) scales
+        K[1, 2] += 0.5 * (scale - 1)
+        W, H = int(round(w * scale)), int(round(h * scale))
+        with torch.no_grad():
+            out = rasterize(means, surfels["quats"], surfels["scales"], surfels["opacities"], surfels["colors"],
+                            torch.as_tensor(cam, dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32),
+                            W, H, backend="auto")
+        alpha = out.alpha.numpy()
+        d = out.median_depth.numpy()
+        ok = (alpha >= MIN_ALPHA) & np.isfinite(d) & (d > 0)
+        if int(ok.sum()) < MIN_PIXELS:
+            continue
+        depths.append(np.where(ok, d, 0).astype(np.float32))
+        Ks.append(K)
+        c2ws.append(v.c2w)
+        cols.append(np.clip(out.rgb.numpy() / np.maximum(alpha, 1e-6)[..., None], 0, 1).astype(np.float32))
+    if not depths:
+        return None
+    mesh = fuse_tsdf(depths, Ks, c2ws, colors=cols, voxel_size=voxel, trunc=4 * voxel,
+                     depth_max=depth_max, keep_fraction=0.2)
+    mesh.voxel_size = voxel
+    return mesh
+
+
+def surfel_normals(quats) -> np.ndarray:
+    """[n, 3] unit normals (local z axis) of surfels with quaternions quats [n, 4] (w, x, y, z)."""
+    q = np.asarray(quats.detach() if hasattr(quats, "detach") else quats, np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12)
+    w, x, y, z = q.T
+    return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=1)
+
+
+def project_to_surfels(mesh, centres: np.ndarray, normals: np.ndarray, k: int = 6):
+    """Move every vertex of `mesh` onto the local plane of its nearest surfels (moving least squares).
+
+    centres [n, 3], normals [n, 3]. Surfel centres lie on the surface but their discs overhang
+    edges by up to a radius, so a silhouette-fused mesh is fat by that much; the planes through the
+    centres are where the surface is. Each vertex moves along the weighted mean normal only (so
+    faces become flat where they belong and the mesh keeps its connectivity).
+    """
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    if len(centres) < 3:
+        return mesh
+    v = np.asarray(mesh.vertices, np.float64)
+    k = min(k, len(centres))
+    dist, idx = cKDTree(centres).query(v, k=k)
+    h = np.maximum(dist[:, -1:], 1e-9)
+    wts = np.exp(-(dist / h) ** 2)
+    n = normals[idx]
+    # normals of neighbours agree in sign with the nearest one (a plane, not a sheet pair)
+    n *= np.sign(np.einsum("ijk,ik->ij", n, n[:, 0]))[..., None]
+    off = np.einsum("ijk,ijk->ij", v[:, None] - centres[idx], n)
+    dn = (wts[..., None] * n).sum(1)
+    dn /= np.linalg.norm(dn, axis=1, keepdims=True).clip(1e-12)
+    step = (wts * off).sum(1) / wts.sum(1)
+    # at edges and corners the neighbours' planes disagree: moving there folds the mesh, so the
+    # move fades out as the normals spread
+    agree = np.clip((np.einsum("ijk,ik->ij", n, dn).min(axis=1) - 0.7) / 0.25, 0.0, 1.0)
+    step *= agree
+    out = trimesh.Trimesh(v - step[:, None] * dn, np.asarray(mesh.faces), process=False,
+                          vertex_colors=getattr(mesh.visual, "vertex_colors", None))
+    return out
+
+
+def support_height(mesh, support_points: np.ndarray, margin: float = 0.05) -> float | None:
+    """z of the up-facing stuff surface under `mesh` (median of support_points [n, 3] within its
+    footprint grown by `margin` and below its centre), or None when there is none."""
+    if len(support_points) == 0:
+        return None
+    lo, hi = np.asarray(mesh.bounds)
+    p = support_points
+    inside = ((p[:, 0] > lo[0] - margin) & (p[:, 0] < hi[0] + margin) & (p[:, 1] > lo[1] - margin)
+              & (p[:, 1] < hi[1] + margin) & (p[:, 2] < 0.5 * (lo[2] + hi[2])))
+    if inside.sum() < 3:
+        return None
+    return float(np.median(p[inside, 2]))
+
+
+def clip_to_support(mesh, z: float):
+    """`mesh` cut at height z (world Z-up) with the cut capped: what hangs below its support goes."""
+    if float(mesh.bounds[0, 2]) >= z:
+        return mesh
+    import trimesh
+    from trimesh.intersections import slice_faces_plane
+
+    # open cut (Trimesh.slice_plane needs shapely); the repair step closes it flat at z
+    v, f = slice_faces_plane(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces),
+                             plane_normal=np.array([0.0, 0.0, 1.0]), plane_origin=np.array([0.0, 0.0, z]))[:2]
+    if len(f) == 0:
+        return mesh
+    m = trimesh.Trimesh(v, f, process=True)
+    return _cap_plane_holes(m, z)
+
+
+def _cap_plane_holes(mesh, z: float, tol: float = 1e-6):
+    """Close every boundary loop lying in the plane height z with a fan from its centroid (the cut's
+    footprint is star-shaped for the objects that rest on a support; repair re-checks the result)."""
+    import networkx as nx
+    import trimesh
+
+    f = np.asarray(mesh.faces)
+    v = np.asarray(mesh.vertices, np.float64)
+    e = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)      # directed edges in winding order
+    key = np.sort(e, axis=1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    bnd = e[cnt[inv.ravel()] == 1]
+    on = (np.abs(v[bnd[:, 0], 2] - z) < tol) & (np.abs(v[bnd[:, 1], 2] - z) < tol)
+    bnd = bnd[on]
+    if len(bnd) < 3:
+        return mesh
+    g = nx.Graph()
+    g.add_edges_from(map(tuple, bnd))
+    new_v, new_f = [v], [f]
+    n = len(v)
+    for comp in nx.connected_components(g):
+        loop = bnd[np.isin(bnd[:, 0], list(comp))]
+        if len(loop) < 3:
+            continue
+        new_v.append(v[list(comp)].mean(axis=0, keepdims=True))
+        # reversed edge + centre keeps the winding consistent with the side faces
+        new_f.append(np.column_stack([loop[:, 1], loop[:, 0], np.full(len(loop), n)]))
+        n += 1
+    return trimesh.Trimesh(np.concatenate(new_v), np.concatenate(new_f), process=True)
+
+
+def _tightest_sound(raw, surfels: dict, sel: np.ndarray, support_points: np.ndarray):
+    """The surfel-projected mesh cut at its support when that still repairs to a watertight solid,
+    else the unprojected one cut at its support, else `raw` (projection can fold thin corners)."""
+    from psimap.exporters.repair import repair_mesh
+
+    z = support_height(raw, support_points)
+    voxel = getattr(raw, "voxel_size", None)
+    means = surfels["means"].detach().numpy()[sel]
+    cands = [project_to_surfels(raw, means, surfel_normals(surfels["quats"][sel])), raw]
+    for c in cands:
+        c = clip_to_support(c, z) if z is not None else c
+        if repair_mesh(c, need_volume=True).ok:
+            c.voxel_size = voxel
+            return c
+    return raw
