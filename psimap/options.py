@@ -50,6 +50,8 @@ class DemoOptions:
     frames: int = opt(60, "frames of the generated synthetic scene")
     width: int = opt(160, "image width of the generated scene")
     height: int = opt(120, "image height of the generated scene")
+    iters: int = opt(0, "geometry training steps (0 = the training default)")
+    panoptic_iters: int = opt(-1, "joint panoptic steps (-1 = the training default)")
 
 
 @dataclass

@@ -46,9 +46,18 @@ def test_demo_runs(tmp_path, capsys):
     from psimap.data import load
 
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--seed", "1", *SMALL]) == 0
+    assert main(["demo", "--out", str(out), "--seed", "1", *SMALL, "--iters", "20",
+                 "--panoptic-iters", "20"]) == 0
     text = capsys.readouterr().out
     assert "generate" in text and "psimap demo: done" in text
+    # the whole chain ran: checkpoint, metrics, exported scene with its report
+    for stage in ("train", "eval", "export"):
+        assert f"] {stage}:" in text
+    assert (out / "scene.ckpt").exists()
+    ev = json.loads((out / "eval.json").read_text())
+    assert 0.0 <= ev["geometry"]["f1"] <= 1.0 and 0.0 <= ev["panoptic"]["pq"] <= 1.0
+    report = json.loads((out / "export" / "report.json").read_text())
+    assert (out / "export" / "scene.xml").exists() and "check" in report
     assert len(load(out / "scene")) == 4
     from PIL import Image
 
