@@ -23,6 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import append_results, markdown_table  # noqa: E402
+from psimap.camera import look_at
 
 SHARED_YCB = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycb"
 VOXEL = 0.005
@@ -111,18 +112,6 @@ def background_mesh(half_width: float):
     wall = trimesh.creation.box([2 * half_width + 0.4, 0.05, 0.8])
     wall.apply_translation([0, WALL_Y + 0.025, 0.35])
     return from_manifold(to_manifold(table) + to_manifold(wall))
-
-
-def look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([x, y, z], 1)
-    c2w[:3, 3] = eye
-    return c2w
 
 
 def scan(placed: dict, background, n_views: int, rng):

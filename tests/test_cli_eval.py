@@ -10,21 +10,9 @@ import trimesh
 
 from psimap.cli import main
 from psimap.metrics.geometry import camera_rays
+from psimap.camera import look_at
 
 W, H, F = 32, 24, 22.0
-
-
-def look_at(eye, target) -> np.ndarray:
-    """OpenCV camera-to-world looking from eye at target, world z up."""
-    fwd = np.asarray(target, float) - eye
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.column_stack([right, down, fwd])
-    c2w[:3, 3] = eye
-    return c2w
 
 
 def scene_mesh():

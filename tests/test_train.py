@@ -11,19 +11,10 @@ from psimap.data.frames import ClassInfo, Frame, FrameSequence
 from psimap.train import losses as L
 from psimap.train.config import TrainConfig
 from psimap.train.trainer import Diverged, train
+from psimap.camera import look_at
 
 W, H = 64, 48
 K = np.array([[52.0, 0, 31.5], [0, 52.0, 23.5], [0, 0, 1]])
-
-
-def look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    c = np.eye(4)
-    c[:3, 0], c[:3, 1], c[:3, 2], c[:3, 3] = x, np.cross(z, x), z, eye
-    return c
 
 
 def tiny_scene(n_frames=8):

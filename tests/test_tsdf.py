@@ -8,19 +8,10 @@ from scipy.spatial import cKDTree
 
 from psimap import PsimapError
 from psimap.geometry.tsdf import clean_components, derive_params, fuse_tsdf
+from psimap.camera import look_at
 
 W, H = 120, 90
 K = np.array([[90.0, 0, 59.5], [0, 90.0, 44.5], [0, 0, 1]])
-
-
-def look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    c = np.eye(4)
-    c[:3, 0], c[:3, 1], c[:3, 2], c[:3, 3] = x, np.cross(z, x), z, eye
-    return c
 
 
 def ray_depth(mesh, c2w):

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from psimap import PsimapError
+from psimap.camera import look_at
 from psimap.data import synthetic_noise as N
 from psimap.data import synthetic_shapes as S
 
@@ -306,20 +307,6 @@ def _drop_interpenetrating(lay: Layout, tol_volume: float = 1e-7) -> None:
 def intrinsics(width: int, height: int) -> np.ndarray:
     f = (width / 2) / math.tan(math.radians(HFOV_DEG) / 2)
     return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Camera-to-world [4, 4] (OpenCV axes) at `eye` looking at `target`, world z up."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    if np.linalg.norm(x) < 1e-6:  # looking straight down/up
-        x = np.array([1.0, 0.0, 0.0])
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
-    return c2w
 
 
 def _object_centre(p: Placed) -> np.ndarray:
