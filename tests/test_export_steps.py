@@ -204,3 +204,45 @@ def test_texture_size_follows_area():
     small = trimesh.creation.box(extents=[0.05] * 3)
     big = trimesh.creation.box(extents=[0.5] * 3)
     assert T.texture_size(small) < T.texture_size(big) <= 1024
+
+
+def test_clip_to_support_cuts_and_caps_watertight():
+    from psimap.exporters.instance_meshes import clip_to_support
+
+    # a box that hangs 2 cm below its support at z = 0 (overhanging discs): cut flat and closed there
+    box = trimesh.creation.box(extents=[0.1, 0.08, 0.12]).apply_translation([0.3, -0.2, 0.04])
+    out = clip_to_support(box, 0.0)
+    assert out.is_watertight and out.is_winding_consistent
+    assert out.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)
+    assert out.volume == pytest.approx(0.1 * 0.08 * 0.1, rel=1e-6)
+    # already above its support: untouched
+    assert clip_to_support(box, -0.5) is box
+
+
+def test_project_to_surfels_pulls_a_fat_box_onto_its_faces():
+    from psimap.exporters.instance_meshes import project_to_surfels
+
+    # oriented points on the faces of a 10 cm cube; the fused mesh is 1 cm too large on every side
+    rng = np.random.default_rng(0)
+    cube = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    pts, fid = trimesh.sample.sample_surface_even(cube, 3000, seed=0)
+    fat = trimesh.creation.box(extents=[0.12, 0.12, 0.12]).subdivide().subdivide()
+    fat.vertices += rng.normal(0, 1e-4, fat.vertices.shape)
+    out = project_to_surfels(fat, pts, cube.face_normals[fid])
+    d_in = np.abs(trimesh.proximity.signed_distance(cube, fat.vertices))
+    d_out = np.abs(trimesh.proximity.signed_distance(cube, out.vertices))
+    assert np.median(d_in) > 0.009
+    assert np.median(d_out) < 0.002          # face interiors land on the faces
+    assert len(out.faces) == len(fat.faces) and np.isfinite(out.vertices).all()
+
+
+def test_support_height_reads_the_floor_under_the_object():
+    from psimap.exporters.instance_meshes import support_height
+
+    floor = np.column_stack([np.random.default_rng(1).uniform(-1, 1, (500, 2)), np.full(500, 0.02)])
+    table = np.column_stack([np.random.default_rng(2).uniform(2, 3, (200, 2)), np.full(200, 0.7)])
+    pts = np.concatenate([floor, table])
+    obj = trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([0.2, 0.2, 0.07])
+    assert support_height(obj, pts) == pytest.approx(0.02)
+    assert support_height(obj.copy().apply_translation([2.3, 2.3, 0.7]), pts) == pytest.approx(0.7)
+    assert support_height(obj, np.zeros((0, 3))) is None
