@@ -23,6 +23,7 @@ class InstanceMesh:
     semantic_id: int
     label: str
     mesh: object            # trimesh.Trimesh or None
+    support_z: float | None = None   # height of the up-facing stuff surface under it (world z)
 
 
 @dataclass
@@ -122,6 +123,7 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
     up_stuff = stuff & (up[:, 2] > 0.9)
     for t in things:
         if t.mesh is not None and len(t.mesh.faces):
+            t.support_z = support_height(t.mesh, s["means"].detach().numpy()[up_stuff])
             t.mesh = _tightest_sound(t.mesh, s, iid == t.instance_id, s["means"].detach().numpy()[up_stuff])
     obj_voxel = min([getattr(t.mesh, "voxel_size", obj_voxel) for t in things if t.mesh is not None] or [obj_voxel])
     bg_masks = [np.isin(m, list(stuff_ids)) & (m >= 0) for m in maps]

@@ -108,6 +108,11 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
         obj.skipped = f"repair: {rep.reason}"
         return obj
     m = rep.mesh
+    support = (context or {}).get("support_z")
+    if support is not None:
+        m, grew = rest_on_support(m, float(support))
+        if grew:
+            obj.repair_steps.append("extended down to its support")
     from psimap.exporters.collision import default_tolerance
     from psimap.exporters.decimate import default_budget
 
@@ -136,6 +141,54 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
         obj.physics.com = np.asarray(obj.collision.transform, np.float64)[:3, 3].copy()
     _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
     return obj
+
+
+def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
+    """(mesh, grown) — a watertight object that rests on the plane height z stands on a base under
+    its centre of mass.
+
+    The underside of a resting object is never seen: the fused mesh ends in a rounded or ragged
+    bottom that touches the support at a point off to one side, and the object rolls. When the base
+    (the part within 1 mm of z) does not hold the centre of mass above it, the lowest `band` of the
+    height is extruded straight down to z and joined to the object (manifold3d), as the real object
+    does rest there. Objects more than `max_gap` above z are not resting and stay as they are.
+    """
+    import trimesh
+    from scipy.spatial import Delaunay
+
+    v = np.asarray(mesh.vertices, np.float64)
+    lo, hi = float(v[:, 2].min()), float(v[:, 2].max())
+    if lo - z > max_gap or hi - z <= 0:
+        return mesh, False
+    com = np.asarray(mesh.center_mass, np.float64)
+    base = v[v[:, 2] < z + 1e-3, :2]
+    if len(base) >= 3:
+        try:
+            if Delaunay(base).find_simplex(com[:2][None])[0] >= 0 and np.ptp(base, axis=0).min() > 0.2 * np.ptp(
+                    v[:, :2], axis=0).min():
+                return mesh, False
+        except Exception:       # collinear base points: no area, extend
+            pass
+    # the band grows until its footprint holds the centre of mass (a tilted, ragged bottom puts
+    # its lowest points all on one side)
+    for frac in (band, 2 * band, 3 * band):
+        ring = v[v[:, 2] <= lo + frac * (hi - lo)]
+        try:
+            if len(ring) >= 3 and Delaunay(ring[:, :2]).find_simplex(com[:2][None])[0] >= 0:
+                break
+        except Exception:
+            continue
+    if len(ring) < 3:
+        return mesh, False
+    foot_pts = np.concatenate([ring, np.column_stack([ring[:, :2], np.full(len(ring), z)])])
+    try:
+        foot = trimesh.convex.convex_hull(foot_pts)
+        out = trimesh.boolean.union([mesh, foot], engine="manifold")
+    except Exception:
+        return mesh, False
+    if not out.is_watertight or out.volume <= 0:
+        return mesh, False
+    return out, True
 
 
 def build_background(mesh, *, views=None, label: str = "background", decimation_budget: float | None = None,
@@ -243,6 +296,8 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
             continue
         views = inst.views_for(item.instance_id)
         context = {"background": inst.background, "voxel_size": inst.voxel_size,
+                   "support_z": item.support_z,
+                   "support_planes": [] if item.support_z is None else [((0.0, 0.0, 1.0), item.support_z)],
                    "neighbours": [t.mesh for t in inst.things if t is not item and t.mesh is not None
                                   and len(t.mesh.faces)],
                    "cameras": [(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],

@@ -246,3 +246,18 @@ def test_support_height_reads_the_floor_under_the_object():
     assert support_height(obj, pts) == pytest.approx(0.02)
     assert support_height(obj.copy().apply_translation([2.3, 2.3, 0.7]), pts) == pytest.approx(0.7)
     assert support_height(obj, np.zeros((0, 3))) is None
+
+
+def test_rest_on_support_gives_a_resting_ball_a_base_under_its_com():
+    from psimap.exporters.objects import rest_on_support
+
+    ball = trimesh.creation.icosphere(3, radius=0.05).apply_translation([0.2, 0.1, 0.05])
+    out, grew = rest_on_support(ball, 0.0)
+    assert grew and out.is_watertight
+    base = out.vertices[out.vertices[:, 2] < 1e-3]
+    assert np.ptp(base[:, 0]) > 0.03 and np.ptp(base[:, 1]) > 0.03       # a real footprint now
+    assert np.abs(base[:, :2].mean(0) - [0.2, 0.1]).max() < 0.01           # under the centre of mass
+    assert ball.volume < out.volume < 1.2 * ball.volume                     # only the unseen cap was added
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([0, 0, 0.05])
+    assert rest_on_support(box, 0.0) == (box, False)                         # already stands
+    assert rest_on_support(ball.copy().apply_translation([0, 0, 0.2]), 0.0)[1] is False   # not resting
