@@ -26,7 +26,7 @@ class PanopticConfig:
     feat_dim: int = 16              # instance feature size per surfel and query
     topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
     temperature: float = 0.1        # softmax temperature over query affinities
-    init_frames: int = 8            # frames (spread over the sequence) whose masks seed the queries
+    init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
     min_mask_fraction: float = 0.002  # 2D masks smaller than this fraction of the image are ignored
     pixels_per_step: int = 4096     # pixels sampled per frame for matching and losses
     w_ins: float = 1.0              # lambda_3
@@ -195,7 +195,11 @@ class PanopticField(nn.Module):
             min_px = max(1, int(cfg.min_mask_fraction * hw))
             masks = thing_masks(instance, semantic, self.class_ids, self.class_thing, min_px)
             info["masks"] = int(masks.shape[0])
-            self._count_visible(K, w2c, width, height)
+            with torch.no_grad():
+                # a query is "seen" by this frame when it renders at least a small mask here; its
+                # centre merely projecting into the image would count hidden objects too, which
+                # then look unmatched and are pruned as useless
+                self.visible += (img[:, :q].sum(0) >= min_px).float()
             if masks.shape[0]:
                 target = masks.reshape(masks.shape[0], -1)[:, pix].float()        # [M, P]
                 prob = img[pix, :q].T.clamp(0.0, 1.0)                             # [Q, P]
@@ -213,17 +217,6 @@ class PanopticField(nn.Module):
                 logits = img[pix][:, q:] / a.unsqueeze(-1).clamp_min(1e-3)
                 l_sem = F.cross_entropy(logits[ok], cols[ok])
         return cfg.w_ins * l_ins, cfg.w_sem * l_sem, info
-
-    def _count_visible(self, K, w2c, width, height) -> None:
-        """Count frames whose image contains a query's centre (for the usage statistic)."""
-        with torch.no_grad():
-            m = self.queries.mean.detach().double()
-            pc = m @ w2c[:3, :3].T.double() + w2c[:3, 3].double()
-            z = pc[:, 2]
-            x = K[0, 0] * pc[:, 0] / z.clamp_min(1e-9) + K[0, 2]
-            y = K[1, 1] * pc[:, 1] / z.clamp_min(1e-9) + K[1, 2]
-            vis = (z > 0) & (x >= 0) & (x < width) & (y >= 0) & (y < height)
-            self.visible += vis.float()
 
     # ---- dynamic query adjustment -------------------------------------------------------------
     def global_query_features(self, means: torch.Tensor) -> torch.Tensor:
@@ -363,13 +356,16 @@ def _fit_panoptic(surfels, frames, classes, *, iters, cfg, seed, backend, progre
     if not labelled:
         raise PsimapError("fit_panoptic: no frame has semantic or instance pseudo-labels")
     order = torch.randint(len(labelled), (iters,), generator=g).tolist()
+    visible_cache: dict[int, torch.Tensor] = {}
     bar = tqdm(order, desc="panoptic", disable=not progress)
     for it, j in enumerate(bar):
         fr = frames[labelled[j]]
         K = torch.as_tensor(fr.K, dtype=torch.float32)
         w2c = torch.as_tensor(np.linalg.inv(fr.c2w), dtype=torch.float32)
         h, w = fr.height, fr.width
-        vis = visible_surfels(means, quats, scales, opac, w2c, K, w, h)
+        if labelled[j] not in visible_cache:          # geometry is fixed here: once per frame
+            visible_cache[labelled[j]] = visible_surfels(means, quats, scales, opac, w2c, K, w, h)
+        vis = visible_cache[labelled[j]]
 
         def render(idx, feats, topk):
             return rasterize(means[idx], quats[idx], scales[idx], opac[idx], colors[idx], w2c, K, w, h,

@@ -77,10 +77,12 @@ class InstanceQueries(nn.Module):
     def mahalanobis2(self, points: torch.Tensor) -> torch.Tensor:
         """Squared Mahalanobis distance of points [N, 3] to every query: [N, Q]."""
         L = self.chol()                                              # [Q, 3, 3]
+        # y = L^{-1} d and |y|^2 = d^T Sigma^{-1} d; inverting the Q small triangular factors once
+        # avoids an [N, Q, 3, 3] expansion.
+        eye = torch.eye(3, dtype=L.dtype, device=L.device).expand_as(L)
+        Linv = torch.linalg.solve_triangular(L, eye, upper=False)   # [Q, 3, 3]
         d = points.unsqueeze(1) - self.mean.unsqueeze(0)             # [N, Q, 3]
-        # Solve L y = d per query: y = L^{-1} d, |y|^2 = d^T Sigma^{-1} d.
-        y = torch.linalg.solve_triangular(L.unsqueeze(0).expand(d.shape[0], -1, -1, -1),
-                                          d.unsqueeze(-1), upper=False).squeeze(-1)
+        y = torch.einsum("qij,nqj->nqi", Linv, d)
         return (y * y).sum(-1)
 
     def attend(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor) -> torch.Tensor:
