@@ -130,3 +130,35 @@ def test_coco_panoptic_roundtrip(tmp_path):
     from PIL import Image
     png = decode_rgb(np.asarray(Image.open(tmp_path / "f1.png")))
     assert png[0, 1] == 4 and png[1, 2] == 9 and png[0, 0] == STUFF_OFFSET + 1
+
+
+def test_uncovered_mask_spawns_a_query_and_covered_one_does_not():
+    from types import SimpleNamespace
+
+    from psimap.data.frames import ClassInfo
+    from psimap.panoptic.field import PanopticConfig, PanopticField
+
+    h, w = 12, 16
+    K = torch.tensor([[10.0, 0, 8], [0, 10.0, 6], [0, 0, 1]])
+    feat, mean, cov = init_from_points([torch.randn(30, 3) * 0.05 + 10.0], 4)   # far from the view
+    field = PanopticField(5, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov),
+                          PanopticConfig(feat_dim=4))
+
+    def render(idx, feats, topk):   # nothing rendered: no query explains the mask
+        c = feats.shape[1]
+        return SimpleNamespace(features=feats.sum() * 0 + torch.zeros(h, w, c), alpha=torch.ones(h, w))
+
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[3:9, 4:12] = 5
+    sem = torch.where(inst > 0, 1, 0)
+    args = (render, torch.zeros(5, 3), torch.arange(5), inst, sem, K, torch.eye(4), w, h)
+    l_ins, l_sem, info = field.losses(*args, depth=torch.ones(h, w))
+    assert info["masks"] == 1 and info["matched"] == 0
+    (l_ins + l_sem).backward()
+    field.step()
+    assert field.queries.count == 2
+    assert torch.allclose(field.queries.mean[1], torch.tensor([0.0, 0.0, 1.0]), atol=0.2)
+    # the new query covers that mask now: seeing it again spawns nothing more
+    field.losses(*args, depth=torch.ones(h, w))
+    field.step()
+    assert field.queries.count == 2

@@ -40,6 +40,9 @@ class PanopticConfig:
     iom_threshold: float = 0.6      # duplicate: IoM with a larger query above this
     mask_affinity: float = 0.5      # 3D mask of a query: surfels with A(q, g) above this
     min_instance_surfels: int = 10  # instances with fewer surfels are dropped at export
+    spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
+    max_spawn_per_step: int = 2
+    max_queries: int = 256
 
 
 def class_tables(classes) -> tuple[torch.Tensor, torch.Tensor]:
@@ -131,7 +134,10 @@ class PanopticField(nn.Module):
         self.queries = queries
         self.matched = torch.zeros(queries.count)
         self.visible = torch.zeros(queries.count)
+        self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
         self.steps = 0
+        self._pending: list[torch.Tensor] = []        # point sets of masks no query covers
+        self._gen = generator
         self._make_optimizers()
 
     # ---- optimisation bookkeeping -------------------------------------------------------------
@@ -150,6 +156,41 @@ class PanopticField(nn.Module):
         self.opt_surfel.step()
         self.opt_query.step()
         self.steps += 1
+        self._spawn_pending()
+
+    def _spawn_pending(self) -> None:
+        """Queries for masks that no existing query covered (objects the seed frames missed)."""
+        if not self._pending:
+            return
+        groups, self._pending = self._pending, []
+        room = self.cfg.max_queries - self.queries.count
+        groups = groups[: max(0, room)]
+        if not groups:
+            return
+        feat, mean, cov = init_from_points(groups, self.cfg.feat_dim, generator=self._gen)
+        self.queries.add(feat, mean, cov)
+        a = len(groups)
+        self.matched = torch.cat([self.matched, torch.zeros(a)])
+        self.visible = torch.cat([self.visible, torch.zeros(a)])
+        self.born = torch.cat([self.born, torch.full((a,), float(self.steps))])
+        self._make_optimizers()
+
+    def _queue_uncovered(self, masks: torch.Tensor, matched_masks: torch.Tensor, depth: torch.Tensor,
+                         K: torch.Tensor, w2c: torch.Tensor) -> None:
+        """Queue back-projected points of unmatched masks whose centre lies outside every query's
+        3-sigma ellipsoid (a mask inside some query's Gaussian is that query's to learn)."""
+        unmatched = [m for m in range(masks.shape[0]) if m not in set(matched_masks.tolist())]
+        if not unmatched or self.queries.count >= self.cfg.max_queries:
+            return
+        c2w = torch.linalg.inv(w2c.double())
+        for m in unmatched[: self.cfg.max_spawn_per_step]:
+            pts = backproject(depth, K, c2w, masks[m])
+            if pts.shape[0] < 8:
+                continue
+            with torch.no_grad():
+                if self.queries.count and float(self.queries.mahalanobis2(pts.mean(0, keepdim=True)).min()) < 9.0:
+                    continue
+            self._pending.append(pts)
 
     def remap(self, idx: torch.Tensor) -> None:
         """Follow the trainer's densification: new surfel j takes old surfel idx[j]'s parameters."""
@@ -166,7 +207,8 @@ class PanopticField(nn.Module):
     # ---- losses -------------------------------------------------------------------------------
     def losses(self, render, means: torch.Tensor, visible_idx: torch.Tensor, instance: torch.Tensor | None,
                semantic: torch.Tensor | None, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int,
-               generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+               generator: torch.Generator | None = None,
+               depth: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
         """(L_ins, L_sem, info) for one frame.
 
         render(idx [V], features [V, C], topk) -> RenderOutput; means [N, 3] (detached positions are
@@ -206,6 +248,8 @@ class PanopticField(nn.Module):
                 match = hungarian_match(prob, target, reject_dice=cfg.reject_dice)
                 l_ins = matched_mask_loss(prob, target, match)
                 self.matched[match.query_idx] += 1
+                if cfg.spawn and depth is not None:
+                    self._queue_uncovered(masks, match.mask_idx, depth, K, w2c)
                 info["matched"] = int(match.query_idx.numel())
         # Semantic: cross-entropy of alpha-normalised blended logits on labelled, covered pixels.
         l_sem = zero
@@ -241,6 +285,7 @@ class PanopticField(nn.Module):
         drop = duplicate_queries(masks, self.cfg.iom_threshold)
         drop |= useless_queries(self.matched, self.visible, self.cfg.min_match_rate)
         drop |= masks.sum(0) == 0                                                    # covers nothing
+        drop &= (self.steps - self.born) >= self.cfg.adjust_every                   # grace for new ones
         if bool(drop.all()):                                                         # keep the best one
             drop[int(torch.argmax(self.matched))] = False
         keep = ~drop
@@ -249,6 +294,7 @@ class PanopticField(nn.Module):
             self.queries.keep(keep)
             self.matched = self.matched[keep]
             self.visible = self.visible[keep]
+            self.born = self.born[keep]
             self._make_optimizers()
         return removed
 
@@ -374,7 +420,8 @@ def _fit_panoptic(surfels, frames, classes, *, iters, cfg, seed, backend, progre
         inst = None if fr.instance is None else torch.as_tensor(np.asarray(fr.instance, dtype=np.int64))
         sem = None if fr.semantic is None else torch.as_tensor(np.asarray(fr.semantic, dtype=np.int64))
         field.zero_grad()
-        l_ins, l_sem, info = field.losses(render, means, vis, inst, sem, K, w2c, w, h, generator=g)
+        depth = torch.as_tensor(np.asarray(fr.depth, dtype=np.float32))
+        l_ins, l_sem, info = field.losses(render, means, vis, inst, sem, K, w2c, w, h, generator=g, depth=depth)
         loss = l_ins + l_sem
         if not torch.isfinite(loss):
             raise PsimapError(f"panoptic training diverged at step {it}: L_ins={float(l_ins)}, L_sem={float(l_sem)}")

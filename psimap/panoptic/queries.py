@@ -112,6 +112,16 @@ class InstanceQueries(nn.Module):
             return surfel_feat.new_zeros(surfel_feat.shape[0], 0)
         return torch.softmax(self.affinity(surfel_feat, surfel_pos, query_feat) / self.temperature, dim=-1)
 
+    def add(self, feature: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> None:
+        """Append queries (feature [A, F], mean [A, 3], cov [A, 3, 3]). Re-creates parameters."""
+        L = torch.linalg.cholesky(_regularise(cov.double())).float()
+        diag = torch.diagonal(L, dim1=-2, dim2=-1).clamp_min(1e-6)
+        new = {"feature": feature.float(), "mean": mean.float(), "log_diag": diag.log(),
+               "offdiag": L[:, [1, 2, 2], [0, 0, 1]]}
+        for name, rows in new.items():
+            old = getattr(self, name)
+            setattr(self, name, nn.Parameter(torch.cat([old.detach(), rows.to(old)]).clone()))
+
     def keep(self, mask: torch.Tensor) -> None:
         """Drop queries where mask [Q] is False (dynamic query adjustment). Re-creates parameters."""
         for name in ("feature", "mean", "log_diag", "offdiag"):

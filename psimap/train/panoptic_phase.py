@@ -74,7 +74,8 @@ def panoptic_phase(params: dict, frames, classes, cfg, *, index, spacing: float,
         if optimizer is not None:
             terms, _ = loss_terms(params, fr, cfg, index, spacing, True, generator)
         l_ins, l_sem, info = field.losses(render, params["means"], vis, fr.instance, fr.semantic,
-                                          fr.K, fr.viewmat, fr.width, fr.height, generator=generator)
+                                          fr.K, fr.viewmat, fr.width, fr.height, generator=generator,
+                                          depth=fr.depth)
         terms["ins"], terms["sem"] = l_ins, l_sem
         bad = L.first_nonfinite(terms)
         if bad is None:
