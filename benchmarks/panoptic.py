@@ -178,7 +178,7 @@ def main() -> None:
     over = {}
     for kv in args.cfg:
         k, v = kv.split("=", 1)
-        over[k] = {"int": int, "float": float}.get(types[k], float)(v)
+        over[k] = {"int": int, "float": float, "str": str}.get(types[k], float)(v)
     cfg = PanopticConfig(**over)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     rows, topk_rows = [], []

@@ -39,6 +39,8 @@ class PanopticConfig:
     min_match_rate: float = 0.1     # useless: matched in fewer of the frames that see it
     iom_threshold: float = 0.6      # duplicate: IoM with a larger query above this
     mask_affinity: float = 0.5      # 3D mask of a query: surfels with A(q, g) above this
+    mask_mode: str = "share"        # "share": 3D mask = softmax share > mask_share; "affinity": A > mask_affinity
+    mask_share: float = 0.3
     min_instance_surfels: int = 10  # instances with fewer surfels are dropped at export
     spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
     max_spawn_per_step: int = 2
@@ -281,7 +283,13 @@ class PanopticField(nn.Module):
         q = self.queries.count
         if q <= 1:
             return 0
-        masks = self.affinity_all(means) > self.cfg.mask_affinity                   # [N, Q]
+        if self.cfg.mask_mode == "share":
+            # ownership after the softmax competition: two queries on one object split it (both
+            # masks hold it, IoM high), while a small object's own query wins it from a large
+            # enclosing one (no overlap), so small objects are not pruned as duplicates
+            masks = torch.softmax(self.affinity_all(means) / self.queries.temperature, -1) > self.cfg.mask_share
+        else:
+            masks = self.affinity_all(means) > self.cfg.mask_affinity               # [N, Q]
         drop = duplicate_queries(masks, self.cfg.iom_threshold)
         drop |= useless_queries(self.matched, self.visible, self.cfg.min_match_rate)
         drop |= masks.sum(0) == 0                                                    # covers nothing
