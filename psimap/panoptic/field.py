@@ -226,6 +226,11 @@ class PanopticField(nn.Module):
         f_vis = self.instance[visible_idx]
         fq = self.queries.attend(f_vis, pos)
         dist = self.queries.distribution(f_vis, pos, fq)                           # [V, Q]
+        if s > 0 and bool(self.class_thing.any()) and not bool(self.class_thing.all()):
+            # p(q | g) = P(thing | g) softmax_q(A / T): stuff surfels (walls, floor) belong to no
+            # query, so the BCE on stuff pixels lowers P(thing) instead of the surfels' opacity
+            p_thing = torch.softmax(self.semantic[visible_idx], -1)[:, self.class_thing].sum(-1, keepdim=True)
+            dist = dist * p_thing
         feats = torch.cat([dist, self.semantic[visible_idx]], dim=-1)
         out = render(visible_idx, feats, cfg.topk)
         img = out.features.reshape(-1, q + s)

@@ -69,8 +69,9 @@ class TrainConfig:
     lambda_sem: float = _f(1.0, "lambda_4: L_sem, cross-entropy of the rendered semantic logits")
     panoptic_topk: int = _f(8, "Top-K hard selection: features blend over the K largest weights")
     panoptic_feat_dim: int = _f(16, "instance feature size per surfel and query")
-    panoptic_geometry: bool = _f(True, "panoptic losses also move geometry (False: geometry frozen "
-                                       "during the panoptic steps)")
+    panoptic_geometry: bool = _f(False, "panoptic losses also move geometry in the panoptic steps "
+                                        "(measured on the demo scene: joint F1@5cm 0.843 / PQ 0.567 vs "
+                                        "frozen 0.950 / 0.631, so frozen is the default)")
 
     # ---- data -----------------------------------------------------------------------------------
     max_frames: int = _f(300, "use at most this many frames (evenly spaced)")
