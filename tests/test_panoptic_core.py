@@ -74,7 +74,7 @@ def test_affinity_and_distribution():
     assert float(far.detach().max()) < 1e-6
     d = q.distribution(f, pts)
     assert torch.allclose(d.sum(-1), torch.ones(3), atol=1e-5)
-    assert d.argmax(-1).tolist() == [0, 1, 2] and float(d.diagonal().min()) > 0.9
+    assert d.argmax(-1).tolist() == [0, 1, 2] and float(d.detach().diagonal().min()) > 0.9
     # covariance stays positive definite for a degenerate (flat, 2-point) mask
     feat2, mean2, cov2 = init_from_points([torch.tensor([[0.0, 0, 0], [1.0, 0, 0]])], 3)
     q2 = InstanceQueries(feat2, mean2, cov2)
