@@ -70,8 +70,8 @@ class TrainConfig:
     panoptic_topk: int = _f(8, "Top-K hard selection: features blend over the K largest weights")
     panoptic_feat_dim: int = _f(16, "instance feature size per surfel and query")
     panoptic_geometry: bool = _f(False, "panoptic losses also move geometry in the panoptic steps "
-                                        "(measured on the demo scene: joint F1@5cm 0.843 / PQ 0.567 vs "
-                                        "frozen 0.950 / 0.631, so frozen is the default)")
+                                        "(on the demo scene joint updates lowered F1@5cm from 0.950 to "
+                                        "0.843 and PQ too; see benchmarks/RESULTS.md)")
 
     # ---- data -----------------------------------------------------------------------------------
     max_frames: int = _f(300, "use at most this many frames (evenly spaced)")
