@@ -24,14 +24,10 @@ def fit_sphere(points: np.ndarray, tolerance: float):
     """Algebraic least-squares sphere: |p|² = 2 c·p + (r² - |c|²). Returns trimesh or None."""
     import trimesh
 
-    A = np.concatenate([2 * points, np.ones((len(points), 1))], axis=1)
-    b = (points ** 2).sum(1)
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-    c, k = sol[:3], sol[3]
-    r2 = k + c @ c
-    if not (np.isfinite(r2) and r2 > 0):
+    fit = _kasa_fit(points)
+    if fit is None:
         return None
-    r = float(np.sqrt(r2))
+    c, r = fit
     if r > 0.75 * np.ptp(points, axis=0).max():     # a gently curved patch, not a seen ball
         return None
     # Icosphere subdivision: edge ~ r * 1.1 / 2^s; sagitta ~ edge² / (8 r) <= tolerance / 20.
@@ -41,16 +37,25 @@ def fit_sphere(points: np.ndarray, tolerance: float):
     return m
 
 
-def _circle_fit(xy: np.ndarray):
-    """Kasa circle fit of 2D points [P, 2]. Returns (centre [2], radius) or None."""
-    A = np.concatenate([2 * xy, np.ones((len(xy), 1))], axis=1)
-    b = (xy ** 2).sum(1)
+def _kasa_fit(points: np.ndarray):
+    """Algebraic (Kasa) circle / sphere fit of points [P, D]: |p|² = 2 c·p + (r² - |c|²).
+
+    Returns (centre [D], radius) or None when the fit is degenerate.
+    """
+    d = points.shape[1]
+    A = np.concatenate([2 * points, np.ones((len(points), 1))], axis=1)
+    b = (points ** 2).sum(1)
     sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-    c, k = sol[:2], sol[2]
+    c, k = sol[:d], sol[d]
     r2 = k + c @ c
     if not (np.isfinite(r2) and r2 > 0):
         return None
     return c, float(np.sqrt(r2))
+
+
+def _circle_fit(xy: np.ndarray):
+    """Kasa circle fit of 2D points [P, 2]. Returns (centre [2], radius) or None."""
+    return _kasa_fit(xy)
 
 
 def _robust_circle(xy: np.ndarray, init, tolerance: float):
