@@ -53,7 +53,7 @@ def panoptic_phase(params: dict, frames, classes, cfg, *, index, spacing: float,
         optimizer.param_groups[0]["lr"] = lr_means          # continue at the decayed position step
     order = rng.integers(0, len(labelled), size=cfg.panoptic_iters)
     bar = tqdm(total=cfg.panoptic_iters, desc="panoptic", disable=not progress, dynamic_ncols=True)
-    streak, skipped, removed_total = 0, 0, 0
+    guard, removed_total = L.NonFiniteGuard(), 0
     for step in range(cfg.panoptic_iters):
         fr = labelled[int(order[step])]
         q = params["quats"]
@@ -88,14 +88,13 @@ def panoptic_phase(params: dict, frames, classes, cfg, *, index, spacing: float,
             field.zero_grad()
             if optimizer is not None:
                 optimizer.zero_grad(set_to_none=True)
-            streak += 1
-            skipped += 1
-            if streak >= 10:
+            try:
+                guard.skip(f"'{bad}'", f"panoptic training diverged at step {step} (frame {fr.name})")
+            except PsimapError:
                 bar.close()
-                raise PsimapError(f"panoptic training diverged at step {step}: '{bad}' was NaN/inf for "
-                                  f"{streak} consecutive steps (frame {fr.name}); nothing was written")
+                raise
             continue
-        streak = 0
+        guard.ok()
         field.step()
         if optimizer is not None:
             optimizer.step()
@@ -116,7 +115,7 @@ def panoptic_phase(params: dict, frames, classes, cfg, *, index, spacing: float,
     metrics = {"panoptic_steps": int(cfg.panoptic_iters), "panoptic_seconds": time.perf_counter() - t0,
                "queries_initial": int(q0), "queries_final": int(field.queries.count),
                "queries_removed": int(removed_total), "instances": n_inst,
-               "panoptic_skipped_steps": int(skipped)}
+               "panoptic_skipped_steps": int(guard.skipped)}
     log(f"panoptic: {field.queries.count} queries (from {q0}), {n_inst} instances, "
         f"{metrics['panoptic_seconds']:.1f} s")
     return state, metrics

@@ -390,7 +390,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
     lowres_steps = int(cfg.lowres_until * iters)
     reg_from = int(cfg.regularize_from * iters)
     dens_from, dens_until = int(cfg.densify_from * iters), int(cfg.densify_until * iters)
-    ema, first_loss, nonfinite_streak, skipped_steps = {}, None, 0, 0
+    ema, first_loss = {}, None
+    guard = L.NonFiniteGuard(Diverged)
     recent, window = [], max(1, iters // 10)      # final loss = mean of the last 10 % of steps
     history = []
     dens_log = []
@@ -410,15 +411,14 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if bad is not None:
             # skip this update: one bad frame must not poison the map; a persistent one is an error
             optimizer.zero_grad(set_to_none=True)
-            nonfinite_streak += 1
-            skipped_steps += 1
-            if nonfinite_streak >= 10:
+            try:
+                guard.skip(bad if bad.startswith("gradient") else f"loss term '{bad}'",
+                           f"training diverged at step {steps_before + step} (frame {fr.name})")
+            except Diverged:
                 bar.close()
-                raise Diverged(f"training diverged at step {steps_before + step}: loss term '{bad}' "
-                               f"was NaN/inf for {nonfinite_streak} consecutive steps "
-                               f"(frame {fr.name}); nothing was written")
+                raise
             continue
-        nonfinite_streak = 0
+        guard.ok()
         if step < dens_until:
             accumulate(grad_stats, params["means"].grad, params["means"].detach(), fr.viewmat,
                        float(0.5 * (fr.K[0, 0] + fr.K[1, 1])))
@@ -480,7 +480,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
                "sogmm_K": info["sogmm_K"], "n_init": info["n_init"], "prior_area": info["area"],
                "spacing": spacing, "extent": extent,
                "loss_start": first_loss or {}, "loss_end": loss_end, "depth_l1_start": depth_err_start,
-               "depth_l1_end": depth_err_end, "skipped_frames": skipped, "skipped_steps": skipped_steps,
+               "depth_l1_end": depth_err_end, "skipped_frames": skipped, "skipped_steps": guard.skipped,
                "history": history, "densify": dens_log, **panoptic_metrics}
     cams = {"K": torch.stack([fr.K.double() for fr in frames]),
             "c2w": torch.as_tensor(np.stack([fr.c2w for fr in frames])),
