@@ -486,3 +486,18 @@ def test_cuda_matches_cpu():
     b = rasterize(*[t.cuda() for t in scene[:5]], viewmat.cuda(), K.cuda(), W, H, features=scene[5].cuda(), topk=2)
     for k in OUTPUTS:
         assert torch.allclose(getattr(a, k), getattr(b, k).cpu(), atol=1e-9), k
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_gradients_match_cpu():
+    """Backward on the device equals backward on the CPU (float64: only summation order differs)."""
+    viewmat, K = camera()
+    grads = {}
+    for dev in ("cpu", "cuda"):
+        scene = [t.to(dev).requires_grad_(True) for t in random_scene(60, seed=7)]
+        out = rasterize(*scene[:5], viewmat.to(dev), K.to(dev), W, H, features=scene[5], topk=4)
+        loss = sum((getattr(out, k) * (i + 1)).sum() for i, k in enumerate(OUTPUTS))
+        loss.backward()
+        grads[dev] = [t.grad.cpu() for t in scene]
+    for a, b in zip(grads["cpu"], grads["cuda"]):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-11)
