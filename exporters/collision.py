@@ -162,7 +162,16 @@ def _inside_convex(hull, pts: np.ndarray, margin: float = 1e-9) -> np.ndarray:
     return ((pts @ n.T) - np.einsum("fd,fd->f", n, o) <= margin).all(axis=1)
 
 
-def _coacd(mesh, threshold: float, max_hulls: int, seed: int, max_faces: int = 1000):
+# CoACD settings chosen for speed on a 2-core CPU (benchmarks/export.py, collider table): the
+# decimated copy and the short tree search cost ~0.1-1 s per call where the library defaults
+# (resolution 2000, 150 MCTS iterations, preprocessing) cost tens of seconds; the fit is measured
+# afterwards against the full mesh, so a coarse call can only lose to the hull, never pass falsely.
+COACD_FACES = 600
+COACD_OPTIONS = {"preprocess_mode": "off", "resolution": 300, "mcts_iterations": 12, "mcts_nodes": 8,
+                 "mcts_max_depth": 2}
+
+
+def _coacd(mesh, threshold: float, max_hulls: int, seed: int, max_faces: int = COACD_FACES):
     import coacd
     import trimesh
 
@@ -176,22 +185,26 @@ def _coacd(mesh, threshold: float, max_hulls: int, seed: int, max_faces: int = 1
     except Exception:
         pass
     parts = coacd.run_coacd(coacd.Mesh(np.asarray(src.vertices, np.float64), np.asarray(src.faces, np.int64)),
-                            threshold=threshold, max_convex_hull=max_hulls, preprocess_mode="off",
-                            resolution=400, mcts_iterations=20, mcts_nodes=10, mcts_max_depth=2,
-                            seed=seed,
-                            max_ch_vertex=MAX_HULL_VERTICES)
+                            threshold=threshold, max_convex_hull=max_hulls, seed=seed,
+                            max_ch_vertex=MAX_HULL_VERTICES, **COACD_OPTIONS)
     out = [trimesh.Trimesh(np.asarray(v), np.asarray(f), process=True) for v, f in parts]
     return [p for p in out if len(p.faces) >= 4]
 
 
 def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int = 8,
                        allow_primitives: bool = True, samples: int = 4000, seed: int = 0,
-                       coacd_thresholds: tuple[float, ...] = (0.3, 0.15)) -> Collision:
+                       coacd_thresholds: tuple[float, ...] = (0.3, 0.15, 0.08),
+                       time_budget: float = 4.0) -> Collision:
     """The cheapest collider within `tolerance` (metres) of `mesh` (watertight trimesh, world frame).
 
-    When nothing fits, the best decomposition found (at most `max_hulls` hulls) is returned with
-    its measured error; the report shows it.
+    Cascade: primitive -> one convex hull -> CoACD, the last only when the hull misses the
+    tolerance, with ever finer concavity thresholds while `time_budget` seconds (per object) last.
+    When nothing fits, the best collider found (at most `max_hulls` hulls) is returned with its
+    measured error; the report shows it.
     """
+    import time
+
+    t_start = time.perf_counter()
     from psimap.exporters.decimate import _dist_to
 
     tol = default_tolerance(mesh) if tolerance is None else float(tolerance)
@@ -242,6 +255,8 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
         return Collision("hull", err, tol, parts=[hull])
     best = Collision("hull", err, tol, parts=[hull])
     for thr in coacd_thresholds:
+        if time.perf_counter() - t_start > time_budget:
+            break
         parts = [limit_hull_vertices(p) for p in _coacd(mesh, thr, max_hulls, seed)]
         if not parts:
             continue

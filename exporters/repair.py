@@ -104,7 +104,8 @@ def _tetwild_surface(mesh, edge_fraction: float):
 
 def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
                 keep_fraction: float = KEEP_COMPONENT_AREA_FRACTION,
-                allow_tetwild: bool = False) -> RepairResult:
+                allow_tetwild: bool = False, pitch: float | None = None, support_z: float | None = None,
+                points: np.ndarray | None = None) -> RepairResult:
     """Clean `mesh` (trimesh.Trimesh, metres) for export.
 
     need_volume: the object is dynamic and needs mass, so it must be watertight with positive
@@ -112,6 +113,9 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
     min_thickness: smallest extent (m) along the thinnest principal axis; thinner is "flat" and
     cannot be simulated as a solid. allow_tetwild: when hole closing fails, rebuild the surface
     with fTetWild (robust, but minutes per object on a laptop CPU, hence off by default).
+    pitch: voxel size (m) of a fused source; when given, an open mesh is closed as the voxel solid
+    it encloses (exporters.solidify, resting on the plane z = support_z when given, with the extra
+    observed surface points [P, 3]) before ear-cut hole filling is tried.
     """
     import trimesh
 
@@ -132,6 +136,13 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
     if thickness < min_thickness:
         return RepairResult(None, False, False,
                             f"flat: thickness {thickness * 1000:.2f} mm < {min_thickness * 1000:.1f} mm")
+    if not m.is_watertight and pitch is not None:
+        from psimap.exporters.solidify import solidify
+
+        solid = solidify(m, float(pitch), support_z, points=points)
+        if solid is not None:
+            m = solid
+            steps.append(f"closed as a voxel solid ({pitch * 1000:.1f} mm)")
     if not m.is_watertight:
         m2 = m
         for _ in range(3):

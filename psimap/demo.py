@@ -21,6 +21,7 @@ class DemoState:
     opts: object
     out: Path
     results: dict = field(default_factory=dict)
+    failed: str = ""        # set by a stage whose check failed: the demo exits non-zero at the end
 
     @property
     def data_dir(self) -> Path:
@@ -134,9 +135,14 @@ def stage_export(state: DemoState) -> str:
     state.results["export"] = report
     check = report.get("check", {})
     objs = report.get("objects", [])
-    verdict = "passed" if check.get("passed") else "FAILED"
+    if check.get("passed"):
+        verdict = "passed"
+    else:
+        verdict = "FAILED: " + ("; ".join(check.get("failures", [])) or "see report.json")
+        state.failed = "simulation check failed"
     return (f"{len(objs)} objects -> {state.out / 'export'} (scene.xml, scene.usda, scene.glb, report.json); "
-            f"simulation check {verdict}")
+            f"simulation check {verdict} (min contact dist {check.get('min_contact_dist', 0.0) * 1000:.2f} mm, "
+            f"max drift {check.get('max_drift', 0.0) * 100:.2f} cm, {len(check.get('nudges', {}))} nudged)")
 
 
 STAGES: list[tuple[str, Callable[[DemoState], str]]] = [
@@ -162,5 +168,11 @@ def run(opts) -> int:
         t0 = time.perf_counter()
         line = stage(state)
         print(f"[{i}/{len(STAGES)}] {name}: {time.perf_counter() - t0:.1f} s\n  {line}", flush=True)
+    if state.failed:
+        # every stage still ran and wrote its outputs (the report says why); the exit code tells
+        # scripts the scene is not simulation-ready
+        print(f"psimap demo: {state.failed} (outputs under {out.resolve()}); "
+              f"{time.perf_counter() - t_all:.1f} s", flush=True)
+        return 2
     print(f"psimap demo: done in {time.perf_counter() - t_all:.1f} s; outputs under {out.resolve()}")
     return 0

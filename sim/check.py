@@ -6,7 +6,8 @@
    normal (+z, gravity is -z) by their depth, the file is rewritten atomically, and the nudges are
    reported.
 3. Settle: simulate `duration` seconds; bodies resting at t = 0 (in contact) must move less than
-   `max_drift`; no NaN; no explosion (speed or height beyond reason).
+   `max_drift`; bodies with no support within `support_gap` at t = 0 must not fall (a floating
+   object is a broken scene, not a settle); no NaN; no explosion (speed or height beyond reason).
 Reports simulated seconds per wall second.
 """
 from __future__ import annotations
@@ -117,7 +118,8 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     """Load, penetration, settle and stability check of an MJCF scene. Returns a plain dict report:
 
     loaded, bodies, min_contact_dist (m), nudges {body: m}, drift {body: m} for resting bodies,
-    max_drift, unsupported (bodies not in contact at t=0), nan, exploded, sim_seconds_per_wall_second,
+    max_drift, unsupported (bodies not in contact at t=0), fell {body: m dropped} (unsupported
+    bodies that fell more than max_drift: a failure), nan, exploded, sim_seconds_per_wall_second,
     passed, failures [str].
     """
     import mujoco
@@ -157,7 +159,13 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         speeds = np.array([np.linalg.norm(data.cvel[b][3:]) for b in free]) if free else np.zeros(0)
         exploded = bool((speeds > max_speed).any() or (np.abs(end - start) > 10.0).any())
     drift = {n: float(np.linalg.norm(e - s)) for n, s, e, r in zip(names, start, end, resting) if r}
+    # an object with nothing under it within support_gap falls: the scene is not what was scanned
+    fell = {n: float(s[2] - e[2]) for n, s, e, r in zip(names, start, end, resting)
+            if not r and not (s[2] - e[2] <= max_drift)}
     failures = []
+    if fell:
+        worst = max(fell, key=lambda n: fell[n])
+        failures.append(f"{len(fell)} unsupported object(s) fell (worst {worst}: {fell[worst] * 100:.1f} cm)")
     if min_dist < -max_penetration:
         failures.append(f"initial penetration {-min_dist * 1000:.2f} mm > {max_penetration * 1000:.1f} mm")
     if nan:
@@ -179,6 +187,7 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         "drift": dict(sorted(drift.items())),
         "max_drift": float(max(drift.values())) if drift else 0.0,
         "unsupported": sorted(n for n, r in zip(names, resting) if not r),
+        "fell": dict(sorted(fell.items())),
         "nan": bool(nan),
         "exploded": bool(exploded),
         "sim_seconds_per_wall_second": float(steps * model.opt.timestep / max(wall, 1e-9)),

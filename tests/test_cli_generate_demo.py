@@ -46,10 +46,13 @@ def test_demo_runs(tmp_path, capsys):
     from psimap.data import load
 
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--seed", "1", *SMALL, "--iters", "20",
-                 "--panoptic-iters", "20"]) == 0
+    rc = main(["demo", "--out", str(out), "--seed", "1", *SMALL, "--iters", "20", "--panoptic-iters", "20"])
     text = capsys.readouterr().out
-    assert "generate" in text and "psimap demo: done" in text
+    # the exit code follows the simulation check (a failed check is exit 2, outputs still written)
+    passed = json.loads((out / "export" / "report.json").read_text())["check"]["passed"]
+    assert rc == (0 if passed else 2)
+    assert "generate" in text and ("psimap demo: done" in text if passed else
+                                   "simulation check FAILED" in text and "psimap demo: simulation" in text)
     # the whole chain ran: checkpoint, metrics, exported scene with its report
     for stage in ("train", "eval", "export"):
         assert f"] {stage}:" in text

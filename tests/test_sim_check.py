@@ -41,9 +41,15 @@ def test_penetration_is_nudged_and_reported(tmp_path):
     assert not r2["passed"] and "penetration" in r2["failures"][0]
 
 
-def test_falling_object_is_unsupported_not_resting(tmp_path):
+def test_floating_object_falls_and_fails(tmp_path):
+    # 45 cm above the floor: not resting, and a scene where it falls is not what was scanned
     r = check_mjcf(_write(tmp_path, BOX.format(z=0.5, extra="")))
     assert r["unsupported"] == ["box"] and "box" not in r["drift"]
+    assert r["fell"]["box"] == pytest.approx(0.45, abs=0.01)
+    assert not r["passed"] and any("unsupported object(s) fell" in f for f in r["failures"])
+    # 3 mm above it: within the support gap, it settles onto the floor and passes
+    r2 = check_mjcf(_write(tmp_path, BOX.format(z=0.053, extra=""), "low.xml"))
+    assert r2["passed"] and r2["unsupported"] == [] and r2["fell"] == {}
 
 
 def test_toppling_object_fails_drift(tmp_path):

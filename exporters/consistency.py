@@ -1,0 +1,119 @@
+"""Step 3b: make the prepared object solids consistent with each other as one scene.
+
+A trained panoptic map is imperfect: an instance can swallow part of its neighbour (a bottle
+merged into the table it stands on), fused solids of touching objects overlap by the TSDF's
+blur, a solid can reach below the floor, and a label can spread over the room. Simulated as they
+are, overlapping solids start 10 cm deep in each other and the solver throws them apart. Here,
+before decimation and colliders:
+- the floor: everything below the background's floor plane is cut off (manifold3d);
+- overlaps: where two solids intersect, the larger one keeps the shared volume and it is cut out of
+  the smaller one (a small object is what stands on or leans against the big one); an object left
+  with under `min_keep` of its volume was inside the other and is skipped;
+- room-sized instances: an "object" wider than `max_extent` is not an object a robot moves (a
+  merged label of many things, or furniture fused with the room) and is skipped with the reason.
+Every change is recorded in the object's repair steps and so in report.json.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# an object this much wider than the largest thing class a robot moves (a table: ~2 m) is not one
+MAX_EXTENT = 2.5
+MIN_KEEP = 0.25                 # volume fraction an object must keep after an overlap cut
+MIN_OVERLAP = 1e-7              # m^3 (0.1 cm^3): intersections smaller than this are rounding
+
+
+def floor_from_background(background) -> float | None:
+    """Height (world z) of the largest up-facing horizontal surface of the background mesh (the
+    floor of a room), or None when it has none."""
+    if background is None or len(background.faces) == 0:
+        return None
+    up = np.asarray(background.face_normals)[:, 2] > 0.9
+    if not up.any():
+        return None
+    zc = np.asarray(background.triangles_center)[up, 2]
+    area = np.asarray(background.area_faces)[up]
+    bins = max(8, int((zc.max() - zc.min()) / 0.01) + 1)
+    hist, edges = np.histogram(zc, bins=bins, weights=area)
+    k = int(hist.argmax())
+    sel = (zc >= edges[k]) & (zc <= edges[k + 1])
+    return float(np.average(zc[sel], weights=area[sel]))
+
+
+def _solid(mesh):
+    import manifold3d
+    import trimesh  # noqa: F401  (trimesh arrays in, manifold out)
+
+    return manifold3d.Manifold(manifold3d.Mesh(np.asarray(mesh.vertices, np.float32),
+                                               np.asarray(mesh.faces, np.uint32)))
+
+
+def _to_trimesh(man):
+    import trimesh
+
+    m = man.to_mesh()
+    out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts),
+                          process=True)
+    if len(out.faces):
+        parts = out.split(only_watertight=True)
+        if len(parts) > 1:      # a cut can leave crumbs: the object is its largest piece
+            out = max(parts, key=lambda p: p.volume)
+    return out
+
+
+def make_consistent(objects, floor_z: float | None = None, *, max_extent: float = MAX_EXTENT,
+                    min_keep: float = MIN_KEEP) -> None:
+    """Edit prepared SceneObjects (obj.mesh = watertight solid) in place: cut at the floor, remove
+    overlaps, skip room-sized and swallowed ones. Objects already skipped are left alone."""
+    import manifold3d
+
+    live = [o for o in objects if not o.skipped]
+    for o in live:
+        ext = np.asarray(o.mesh.extents, np.float64)
+        if float(ext[:2].max()) > max_extent:
+            o.skipped = (f"spans {ext[:2].max():.1f} m (> {max_extent:.1f} m): a merged or room-sized "
+                         "label, not an object; left to the static background")
+    live = [o for o in live if not o.skipped]
+    if floor_z is not None:
+        for o in live:
+            depth = float(floor_z - o.mesh.bounds[0, 2])
+            if depth <= 1e-3:
+                continue
+            lo, hi = np.asarray(o.mesh.bounds, np.float64)
+            span = hi - lo
+            keep = manifold3d.Manifold.cube(list(span + 0.2), False).translate(
+                [float(lo[0] - 0.1), float(lo[1] - 0.1), float(floor_z)])
+            cut = _to_trimesh(_solid(o.mesh) ^ keep)
+            _apply_cut(o, cut, min_keep, f"cut at the floor ({depth * 1000:.0f} mm below it)",
+                       "below the floor")
+    live = [o for o in live if not o.skipped]
+    # big first: each solid keeps what it shares with every smaller one
+    live.sort(key=lambda o: (-float(o.mesh.volume), o.instance_id))
+    for i, big in enumerate(live):
+        if big.skipped:
+            continue
+        for small in live[i + 1:]:
+            if small.skipped or not _boxes_overlap(big.mesh.bounds, small.mesh.bounds):
+                continue
+            a, b = _solid(big.mesh), _solid(small.mesh)
+            shared = float((a ^ b).volume())
+            if shared < MIN_OVERLAP:
+                continue
+            cut = _to_trimesh(b - a)
+            _apply_cut(small, cut, min_keep,
+                       f"overlap with {big.name} removed ({shared * 1e6:.1f} cm3)", f"inside {big.name}")
+
+
+def _apply_cut(obj, cut, min_keep: float, step: str, swallowed: str) -> None:
+    before = float(obj.mesh.volume)
+    if len(cut.faces) == 0 or not cut.is_watertight or cut.volume < min_keep * before:
+        kept = 0.0 if len(cut.faces) == 0 else float(cut.volume) / before
+        obj.skipped = f"{swallowed}: {kept * 100:.0f} % of its volume left after the cut"
+        return
+    obj.mesh = cut
+    obj.repair_steps.append(step)
+
+
+def _boxes_overlap(b1, b2, pad: float = 0.0) -> bool:
+    b1, b2 = np.asarray(b1), np.asarray(b2)
+    return bool(np.all(b1[0] - pad <= b2[1]) and np.all(b2[0] - pad <= b1[1]))

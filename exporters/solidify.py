@@ -1,0 +1,174 @@
+"""Step 2b: a closed solid from an open, fused object surface (voxel flood fill).
+
+A fused object is an open shell: its underside, where it rests on its support, is never seen, and
+TSDF leaves small tunnels and gaps. Hole filling by ear cutting (pymeshlab) tents a ragged rim into
+the interior (a fused box came out at 46 % of its hull volume) and every collider after it needs a
+convex decomposition. Here the shell is voxelised, the support plane closes the opening under the
+object's footprint, one morphological closing seals gaps of up to two voxels, and everything the
+outside cannot reach is solid. Its contour (marching cubes, VTK via pyvista) lies within half a
+voxel of the shell. (Snapping the contour back onto the shell was tried: the snapped vertices fold
+and no decimation of the result stays watertight.)
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# cells per axis: enough to keep a cm-sized handle at 10-20 cm objects, bounded so a room-sized
+# instance costs no more than ~2 M cells
+MIN_CELLS = 48
+ISO = 0.4           # contour level of the solid field (see solidify)
+MAX_CELLS = 128
+
+
+def solid_pitch(mesh, resolution: float | None) -> float:
+    """Voxel pitch (m) for `mesh`: the source resolution, refined to >= MIN_CELLS cells along the
+    longest side and coarsened to <= MAX_CELLS cells."""
+    ext = float(np.max(mesh.extents))
+    pitch = ext / MIN_CELLS if resolution is None else min(float(resolution), ext / MIN_CELLS)
+    return max(pitch, ext / MAX_CELLS, 1e-5)
+
+
+def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndarray | None = None,
+             max_closing: int = 3, max_gap: float = 0.05):
+    """Closed trimesh around the solid an open shell `mesh` encloses, or None when it encloses none.
+
+    mesh: trimesh (metres, world Z-up). pitch: voxel size (m). support_z: height of the plane the
+    object rests on (its opening there is closed by the plane over the footprint of the shell's
+    lowest band; nothing is built below it); ignored when the shell ends more than `max_gap`
+    above it. points: [P, 3] more observed surface points of the
+    object (e.g. its surfel discs), added to the shell. Gaps are sealed by a morphological closing
+    of 1, 2, ... max_closing voxels, the least that encloses a solid. The result is watertight (a
+    contour of a voxel field).
+    """
+    import pyvista as pv
+    import trimesh
+    from scipy import ndimage
+
+    v = np.asarray(mesh.vertices, np.float64)
+    if len(v) < 4 or len(mesh.faces) < 4 or not np.isfinite(v).all():
+        return None
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    if support_z is not None and lo[2] - float(support_z) > max_gap:
+        support_z = None                # far above its support: it does not rest on it
+    if support_z is not None:
+        lo[2] = float(support_z)        # cut below it, closed down to it above
+        if hi[2] <= lo[2] + 2 * pitch:
+            return None
+    pad = 3
+    origin = lo - (pad + 0.5) * pitch     # the extreme vertices at cell centres, not on cell faces
+    if support_z is not None:
+        origin[2] = lo[2]               # the support is the grid's floor: nothing below it
+    dims = np.ceil((hi - origin) / pitch).astype(np.int64) + pad + 1
+    # shell: voxels holding surface samples spaced well under a voxel
+    pts = _surface_points(mesh, 0.4 * pitch)
+    if points is not None and len(points):
+        pts = np.concatenate([pts, np.asarray(points, np.float64).reshape(-1, 3)])
+    if support_z is not None:
+        pts = pts[pts[:, 2] >= lo[2]]
+    idx = np.floor((pts - origin) / pitch).astype(np.int64)
+    idx = idx[((idx >= 0) & (idx < dims)).all(axis=1)]
+    shell = np.zeros(dims, bool)
+    shell[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    if shell.sum() < 8:
+        return None
+    if support_z is not None:
+        # close the opening on the support under the footprint of the lowest band of the shell
+        band = max(2, int(np.ceil(0.5 * shell.shape[2])))
+        foot = ndimage.binary_fill_holes(ndimage.binary_closing(shell[:, :, :band].any(axis=2), iterations=2))
+        shell[:, :, 0] |= foot
+        # the unseen underside between the lowest band and the support (a ball's lower cap) is
+        # closed by columns straight down from the band's lowest voxel: what rests there is solid
+        low = np.where(shell[:, :, 1:].any(axis=2), shell[:, :, 1:].argmax(axis=2) + 1, 0)
+        cols = foot & (low > 0) & (low < band)
+        zz = np.arange(shell.shape[2])[None, None, :]
+        shell |= cols[:, :, None] & (zz < low[:, :, None])
+    border = np.zeros(dims, bool)
+    border[[0, -1], :, :] = True
+    border[:, [0, -1], :] = True
+    border[:, :, -1] = True
+    if support_z is None:
+        border[:, :, 0] = True
+    solid = None
+    for it in range(1, max_closing + 1):
+        closed = _closing(shell, it, floor=support_z is not None)
+        free = ~closed
+        # outside = free cells connected to the grid's sides and top (its floor is the support)
+        lab, _ = ndimage.label(free)
+        outside_labels = np.unique(lab[border & free])
+        outside = np.isin(lab, outside_labels[outside_labels > 0])
+        if int((~outside & ~closed).sum()) >= 0.05 * int(closed.sum()):
+            solid = ~outside
+            break
+    if solid is None:       # the fill leaks in at every closing: the shell encloses nothing
+        return None
+    # the solid's boundary cells hold the observed surface, which passes on average through their
+    # centres: the field is 1 inside, 1/2 on the boundary layer, 0 outside, and its ISO level
+    # contour runs just outside the boundary cells' centres (the plain indicator's 0.5 contour
+    # runs along their outer faces, half a voxel fat); a one-voxel wall keeps a thin closed skin
+    inner = ndimage.binary_erosion(solid, structure=np.ones((3, 3, 3), bool), border_value=0)
+    if support_z is not None:       # the floor layer is boundary only towards the sides
+        inner[:, :, 0] = ndimage.binary_erosion(solid[:, :, 0], structure=np.ones((3, 3), bool)) & solid[:, :, 1]
+    field = np.pad(0.5 * (solid.astype(np.float32) + inner), 2)
+    field = ndimage.gaussian_filter(field, 0.5)
+    img = pv.ImageData(dimensions=field.shape, spacing=(pitch,) * 3,
+                       origin=tuple(origin + 0.5 * pitch - 2 * pitch))
+    img.point_data["occ"] = field.ravel(order="F")
+    surf = img.contour([ISO], scalars="occ").triangulate().clean()
+    if surf.n_cells == 0:
+        return None
+    out = trimesh.Trimesh(np.asarray(surf.points, np.float64), np.asarray(surf.faces).reshape(-1, 4)[:, 1:],
+                          process=True)
+    if support_z is not None:       # the floor contour sits half a cell below the support: clamp
+        out.vertices[:, 2] = np.maximum(out.vertices[:, 2], lo[2])
+    parts = out.split(only_watertight=True)
+    if len(parts) == 0:
+        return None
+    out = max(parts, key=lambda p: abs(p.volume))
+    if out.volume < 0:
+        out.invert()
+    return out if out.is_watertight and out.volume > 0 else None
+
+
+def _closing(shell: np.ndarray, iterations: int, floor: bool) -> np.ndarray:
+    """Morphological closing of shell [X, Y, Z] that neither erodes at the grid's edge nor (floor)
+    at its bottom layer, which continues into the support below."""
+    from scipy import ndimage
+
+    k = iterations
+    big = np.pad(shell, k)
+    if floor:
+        big[:, :, :k] = big[:, :, k:k + 1]
+    out = ndimage.binary_closing(big, structure=np.ones((3, 3, 3), bool), iterations=k, border_value=1)
+    return out[k:-k, k:-k, k:-k] | shell
+
+
+def disc_points(means, quats, scales, opacities=None, min_opacity: float = 0.5) -> np.ndarray:
+    """[5n, 3] points on surfel discs: centres and the ends of both tangent axes at one scale.
+
+    means [n, 3], quats [n, 4] (w, x, y, z), scales [n, 2] (metres), opacities [n]."""
+    q = np.asarray(quats, np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12)
+    w, x, y, z = q.T
+    t1 = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], axis=1)
+    t2 = np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], axis=1)
+    m = np.asarray(means, np.float64)
+    s = np.asarray(scales, np.float64)
+    keep = np.ones(len(m), bool) if opacities is None else np.asarray(opacities, np.float64) >= min_opacity
+    m, s, t1, t2 = m[keep], s[keep], t1[keep], t2[keep]
+    a, b = s[:, :1] * t1, s[:, 1:2] * t2
+    return np.concatenate([m, m + a, m - a, m + b, m - b])
+
+
+def _surface_points(mesh, spacing: float) -> np.ndarray:
+    """Surface samples [P, 3] about `spacing` apart (plus the vertices), capped at 400 k points."""
+    tri = np.asarray(mesh.triangles, np.float64)
+    area = np.asarray(mesh.area_faces, np.float64)
+    n = int(min(400_000, max(1000, area.sum() / spacing ** 2)))
+    rng = np.random.default_rng(0)
+    if area.sum() <= 0:
+        return np.asarray(mesh.vertices, np.float64)
+    f = rng.choice(len(tri), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    return np.concatenate([np.einsum("nk,nkd->nd", w, tri[f]), np.asarray(mesh.vertices, np.float64)])

@@ -1,0 +1,169 @@
+"""Export robustness to imperfect panoptic output: voxel solids of open fused shells, the scene made
+consistent (floor cut, overlaps removed, room-sized labels), the collider cascade's time budget,
+texel from the views, and the exit code of a failed simulation check."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from psimap.exporters.consistency import floor_from_background, make_consistent
+from psimap.exporters.objects import SceneObject, view_texel
+from psimap.exporters.solidify import disc_points, solid_pitch, solidify
+
+
+def _open_box(extents=(0.203, 0.121, 0.097), z0=0.0, drop_side=False):
+    """A box resting on z = z0 without its bottom (never seen) and optionally with one side wall
+    partly missing above the floor (a ragged rim)."""
+    b = trimesh.creation.box(extents=extents).apply_translation([0, 0, z0 + extents[2] / 2])
+    b = b.subdivide().subdivide()
+    c = b.triangles_center
+    keep = c[:, 2] > z0 + 1e-6                                   # no bottom
+    if drop_side:                                                 # rim 2 cm up on the -x wall
+        keep &= ~((c[:, 0] < -extents[0] / 2 + 1e-6) & (c[:, 2] < z0 + 0.02))
+    return trimesh.Trimesh(b.vertices, b.faces[keep], process=True)
+
+
+# ---------------------------------------------------------------- solidify
+def test_open_box_becomes_the_solid_it_encloses():
+    shell = _open_box(drop_side=True)
+    assert not shell.is_watertight
+    pitch = solid_pitch(shell, 0.004)
+    s = solidify(shell, pitch, support_z=0.0)
+    assert s is not None and s.is_watertight
+    vol = 0.203 * 0.121 * 0.097
+    # the contour sits within half a voxel of the shell: volume within that shell's share
+    assert abs(s.volume - vol) < 0.5 * pitch * shell.area + 1e-6
+    assert s.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)     # rests on its support, nothing below
+    np.testing.assert_allclose(s.extents, [0.203, 0.121, 0.097], atol=pitch)
+    assert s.volume / s.convex_hull.volume > 0.9               # a box, not a tented hull
+
+
+def test_open_ball_cap_is_closed_down_to_the_support():
+    ball = trimesh.creation.icosphere(3, radius=0.05).apply_translation([0, 0, 0.05])
+    cap = trimesh.Trimesh(ball.vertices, ball.faces[ball.triangles_center[:, 2] > 0.03], process=True)
+    s = solidify(cap, solid_pitch(cap, 0.003), support_z=0.0)
+    assert s is not None and s.is_watertight
+    # the unseen lower cap is filled by columns down to the support: more than the ball, less than its box
+    assert 4 / 3 * np.pi * 0.05 ** 3 < s.volume < 0.1 * 0.1 * 0.1
+    assert s.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_solidify_degenerate_inputs_give_none():
+    plane = trimesh.creation.box(extents=[0.2, 0.2, 0.001])
+    plane = trimesh.Trimesh(plane.vertices, plane.faces[plane.face_normals[:, 2] > 0.9])
+    assert solidify(plane, 0.004) is None                      # a sheet encloses nothing
+    assert solidify(trimesh.Trimesh(), 0.004) is None
+    nan = _open_box()
+    nan.vertices[0] = np.nan
+    assert solidify(nan, 0.004, support_z=0.0) is None
+    # support above the object: nothing left to build
+    assert solidify(_open_box(), 0.004, support_z=0.5) is None
+
+
+def test_disc_points_lie_on_the_discs():
+    q = np.array([[1.0, 0, 0, 0], [np.cos(0.5), np.sin(0.5), 0, 0]])      # identity, tilted about x
+    pts = disc_points(np.zeros((2, 3)), q, np.array([[0.1, 0.2], [0.1, 0.2]]), np.array([0.9, 0.1]))
+    assert pts.shape == (5, 3)                                  # the low-opacity surfel is dropped
+    np.testing.assert_allclose(pts[1:, 2], 0.0, atol=1e-12)     # in the disc's plane (normal z)
+    np.testing.assert_allclose(sorted(np.linalg.norm(pts[1:], axis=1)), [0.1, 0.1, 0.2, 0.2])
+
+
+# ---------------------------------------------------------------- consistency
+def _obj(mesh, iid, label="box"):
+    o = SceneObject(iid, label, mesh)
+    return o
+
+
+def _box(ext, centre):
+    return trimesh.creation.box(extents=ext).apply_translation(centre)
+
+
+def test_overlap_is_cut_from_the_smaller_solid():
+    import manifold3d  # noqa: F401
+
+    table = _obj(_box([1.0, 0.6, 0.05], [0, 0, 0.725]), 1, "table")
+    # a bottle fused 3 cm into the table top
+    bottle = _obj(_box([0.06, 0.06, 0.2], [0.1, 0, 0.75 - 0.03 + 0.1]), 2, "bottle")
+    v_table = table.mesh.volume
+    make_consistent([bottle, table], floor_z=0.0)
+    assert not bottle.skipped and not table.skipped
+    assert table.mesh.volume == pytest.approx(v_table)           # the big one keeps the shared part
+    assert bottle.mesh.is_watertight
+    assert bottle.mesh.bounds[0, 2] == pytest.approx(0.75, abs=1e-6)   # now stands on the top
+    assert bottle.mesh.volume == pytest.approx(0.06 * 0.06 * 0.17, rel=1e-4)
+    assert any("overlap with table_1" in s for s in bottle.repair_steps)
+
+
+def test_floor_cut_swallowed_and_room_sized_objects():
+    below = _obj(_box([0.2, 0.2, 0.2], [0, 0, 0.05]), 1)           # 5 cm below the floor
+    inside = _obj(_box([0.05, 0.05, 0.05], [0.0, 0.0, 0.1]), 2)    # inside `below`
+    room = _obj(_box([4.0, 3.0, 0.5], [0, 0, 0.25]), 3, "table")
+    make_consistent([below, inside, room], floor_z=0.0)
+    assert room.skipped.startswith("spans 4.0 m")
+    assert below.mesh.bounds[0, 2] == pytest.approx(0.0, abs=1e-6)
+    assert below.mesh.volume == pytest.approx(0.2 * 0.2 * 0.15, rel=1e-4)
+    assert "cut at the floor (50 mm below it)" in below.repair_steps
+    assert inside.skipped.startswith("inside box_1")
+
+
+def test_floor_from_background_picks_the_largest_up_facing_plane():
+    floor = _box([4, 4, 0.02], [0, 0, -0.31])                    # top at z = -0.30
+    table = _box([1, 1, 0.02], [0, 0, 0.70])
+    assert floor_from_background(trimesh.util.concatenate([floor, table])) == pytest.approx(-0.30, abs=0.01)
+    assert floor_from_background(None) is None
+
+
+# ---------------------------------------------------------------- collider cascade, texel
+def test_collider_time_budget_bounds_coacd():
+    import time
+
+    from psimap.exporters.collision import collision_geometry
+
+    lshape = trimesh.boolean.union([_box([0.3, 0.06, 0.06], [0, 0, 0.03]), _box([0.06, 0.06, 0.3], [0.12, 0, 0.18])],
+                                   engine="manifold")
+    t = time.perf_counter()
+    c0 = collision_geometry(lshape, 0.003, time_budget=0.0)         # no time for CoACD: the hull, honestly
+    assert c0.kind == "hull" and c0.error > 0.05 and time.perf_counter() - t < 5
+    c = collision_geometry(lshape, 0.01, time_budget=10.0)
+    assert c.kind == "decomposition" and 2 <= c.hull_count <= 8 and c.error < c0.error
+
+
+def test_view_texel_is_half_the_finest_pixel_footprint():
+    from psimap.exporters.texture import View
+
+    box = _box([0.1, 0.1, 0.1], [0, 0, 2.0])
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    near, far = np.eye(4), np.eye(4)
+    far[2, 3] = -2.0                                              # 4 m from the box
+    views = [View(np.zeros((100, 100, 3)), np.zeros((100, 100)), K, c) for c in (far, near)]
+    assert view_texel(box, views) == pytest.approx(0.5 * 2.0 / 100)
+    assert view_texel(box, []) == 0.0
+
+
+# ---------------------------------------------------------------- exit code of a failed check
+def test_failed_check_gives_nonzero_exit_with_report(tmp_path, monkeypatch, capsys):
+    from types import SimpleNamespace
+
+    import psimap
+    import psimap.exporters.pipeline as pipeline
+    from psimap.exporters import cli_export
+    from psimap.exporters.objects import build_object
+
+    box = build_object(_box([0.1, 0.1, 0.1], [0, 0, 0.3]), "box", 1, completion="none")   # floating
+    ground = build_object(_box([0.1, 0.1, 0.1], [1, 0, 0.05]), "box", 2, completion="none")  # on the floor
+    monkeypatch.setattr(psimap, "load", lambda path: "scene")
+    real = pipeline.export_scene
+    monkeypatch.setattr(pipeline, "export_scene", lambda scene, out, fmt, **kw: real([box, ground], out, fmt,
+                                                                                   check=kw["check"]))
+    opts = SimpleNamespace(ckpt="x.ckpt", out=str(tmp_path / "out"), format="mjcf", completion="none",
+                           no_check=False, densities="")
+    assert cli_export(opts) == 2
+    text = capsys.readouterr().out
+    assert "simulation check FAILED" in text and "unsupported object(s) fell" in text
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["check"]["passed"] is False and rep["check"]["fell"]["box_1"] > 0.2
+    opts.no_check, opts.out = True, str(tmp_path / "out2")
+    assert cli_export(opts) == 0
