@@ -24,6 +24,8 @@ class InstanceMesh:
     label: str
     mesh: object            # trimesh.Trimesh or None
     support_z: float | None = None   # height of the up-facing stuff surface under it (world z)
+    dropped_surfels: int = 0         # surfels of this label away from its main body (not fused)
+    members: np.ndarray | None = None  # [N] bool: the surfels of its main body
 
 
 @dataclass
@@ -109,7 +111,9 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
         seen = [k for k, m in enumerate(maps) if int((m == t.instance_id).sum()) >= MIN_PIXELS]
         if not seen:
             continue
-        sel = iid == t.instance_id
+        sel = main_body(s["means"], s["scales"], iid == t.instance_id)
+        t.dropped_surfels = int((iid == t.instance_id).sum() - sel.sum())
+        t.members = sel
         try:
             t.mesh = fuse_instance({k: s[k][torch.as_tensor(sel)] for k in ("means", "quats", "scales",
                                                                             "opacities", "colors")},
@@ -118,13 +122,14 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
             t.mesh = None
     # support-aware bottoms: the discs of the sides hang below the support; cut every object at the
     # up-facing stuff surface under it (floor, table) and cap it there, so it rests on its support
-    stuff = np.isin(iid, list(stuff_ids)) | (iid == 0)
-    up = surfel_normals(s["quats"])
-    up_stuff = stuff & (up[:, 2] > 0.9)
+    up = surfel_normals(s["quats"])[:, 2] > 0.9
+    means = s["means"].detach().numpy()
     for t in things:
         if t.mesh is not None and len(t.mesh.faces):
-            t.support_z = support_height(t.mesh, s["means"].detach().numpy()[up_stuff])
-            t.mesh = _tightest_sound(t.mesh, s, iid == t.instance_id, s["means"].detach().numpy()[up_stuff])
+            support_pts = means[up & (iid != t.instance_id)]
+            t.support_z = support_height(t.mesh, support_pts)
+            t.mesh = _tightest_sound(t.mesh, s, t.members if t.members is not None else iid == t.instance_id,
+                                     support_pts)
     obj_voxel = min([getattr(t.mesh, "voxel_size", obj_voxel) for t in things if t.mesh is not None] or [obj_voxel])
     bg_masks = [np.isin(m, list(stuff_ids)) & (m >= 0) for m in maps]
     background = None
@@ -132,6 +137,37 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
         background = fuse_tsdf(depths, Ks, c2ws, colors=colors, masks=bg_masks, voxel_size=params.voxel_size,
                                depth_max=params.depth_max)
     return InstanceMeshes(things, background, views, maps, obj_voxel)
+
+
+def main_body(means, scales, sel: np.ndarray, link: float = 4.0) -> np.ndarray:
+    """[N] bool: the surfels of `sel` [N] bool in its largest spatially connected cluster.
+
+    means [N, 3], scales [N, 2]. An imperfect panoptic field gives one label to pieces of other
+    objects across the room (a table's id on a far bottle): fused together they make one
+    room-spanning "object". Surfels closer than `link` x the label's median surfel radius are
+    connected (a surface's surfels overlap); the cluster with the most surfel area is the object.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    idx = np.flatnonzero(sel)
+    if len(idx) < 3:
+        return sel
+    m = np.asarray(means.detach() if hasattr(means, "detach") else means, np.float64)[idx]
+    sc = np.asarray(scales.detach() if hasattr(scales, "detach") else scales, np.float64)[idx]
+    r = link * float(np.median(sc.max(axis=1)))
+    pairs = cKDTree(m).query_pairs(r, output_type="ndarray")
+    if len(pairs) == 0:
+        return sel
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(idx), len(idx)))
+    n, lab = connected_components(g, directed=False)
+    if n == 1:
+        return sel
+    area = np.bincount(lab, weights=sc[:, 0] * sc[:, 1], minlength=n)
+    out = np.zeros_like(sel)
+    out[idx[lab == int(area.argmax())]] = True
+    return out
 
 
 def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float = 1.5,
@@ -230,18 +266,30 @@ def project_to_surfels(mesh, centres: np.ndarray, normals: np.ndarray, k: int = 
     return out
 
 
-def support_height(mesh, support_points: np.ndarray, margin: float = 0.05) -> float | None:
-    """z of the up-facing stuff surface under `mesh` (median of support_points [n, 3] within its
-    footprint grown by `margin` and below its centre), or None when there is none."""
+def support_height(mesh, support_points: np.ndarray, margin: float = 0.05, sink: float = 0.02,
+                   tol: float = 0.01, min_count: int = 3) -> float | None:
+    """z of the surface `mesh` rests on, or None when there is none.
+
+    support_points [n, 3]: up-facing surfel centres of everything else (floor, table tops). Those
+    inside the footprint (grown by `margin`) and no higher than `sink` above the object's lowest
+    point (a fused bottom sinks into its support by the surfel blur) are candidates; the highest
+    level held by at least `min_count` of them within `tol` is the support (a bottle on a table
+    rests on the table top, not on the floor seen under the table).
+    """
     if len(support_points) == 0:
         return None
     lo, hi = np.asarray(mesh.bounds)
     p = support_points
     inside = ((p[:, 0] > lo[0] - margin) & (p[:, 0] < hi[0] + margin) & (p[:, 1] > lo[1] - margin)
-              & (p[:, 1] < hi[1] + margin) & (p[:, 2] < 0.5 * (lo[2] + hi[2])))
-    if inside.sum() < 3:
+              & (p[:, 1] < hi[1] + margin) & (p[:, 2] < lo[2] + sink))
+    if inside.sum() < min_count:
         return None
-    return float(np.median(p[inside, 2]))
+    zs = np.sort(p[inside, 2])[::-1]
+    for z in zs:
+        near = np.abs(zs - z) <= tol
+        if near.sum() >= min_count:
+            return float(np.median(zs[near]))
+    return None
 
 
 def clip_to_support(mesh, z: float):

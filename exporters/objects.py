@@ -8,6 +8,7 @@ never reaches a writer. `extract_objects(scene)` does this for every instance of
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +42,7 @@ class SceneObject:
     repair_steps: list = field(default_factory=list)
     skipped: str = ""                       # reason the object is not exported ("" = exported)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
+    timings: dict = field(default_factory=dict, repr=False)   # seconds per asset step
 
     @property
     def name(self) -> str:
@@ -95,6 +97,7 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
     obj.faces_before = int(len(getattr(mesh, "faces", [])))
     # clean first (floaters, degenerate faces), let completion close a partial scan, then require
     # a sound watertight solid
+    t0 = time.perf_counter()
     pre = repair_mesh(mesh, need_volume=False)
     if not pre.ok:
         obj.skipped = f"repair: {pre.reason}"
@@ -103,7 +106,9 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
     if completion == "auto":
         from psimap.completion import complete
 
+        t1 = time.perf_counter()
         res = complete(m, dict(context or {}, label=label, instance_id=int(instance_id)))
+        obj.timings["completion_s"] = time.perf_counter() - t1
         obj.completed, obj.completion_method = bool(res.completed), str(res.method)
         if res.completed and res.mesh is not None:
             m = res.mesh
@@ -131,6 +136,7 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         if grew:
             obj.repair_steps.append("extended down to its support")
     obj.mesh = m
+    obj.timings["repair_s"] = time.perf_counter() - t0 - obj.timings.get("completion_s", 0.0)
     return obj
 
 
@@ -153,7 +159,9 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
         decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0)
     if collision_tolerance is None:
         collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
+    t0 = time.perf_counter()
     dec = decimate_to_budget(m, decimation_budget, seed=seed)
+    obj.timings["decimation_s"] = time.perf_counter() - t0
     m = dec.mesh
     obj.faces_after = int(len(m.faces))
     obj.decimation_error, obj.decimation_mean_error = dec.hausdorff, dec.mean_error
@@ -167,14 +175,18 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     except Exception as e:  # PsimapError: no volume
         obj.skipped = f"physics: {e}"
         return obj
+    t0 = time.perf_counter()
     obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed)
+    obj.timings["collision_s"] = time.perf_counter() - t0
     if obj.collision.kind == "sphere":
         # a sphere collider means the object is a ball: its COM is the centre (a reconstruction's
         # sub-millimetre COM offset would otherwise roll a ball that rests in the scan)
         obj.physics.com = np.asarray(obj.collision.transform, np.float64)[:3, 3].copy()
     if views:
         texel = max(texel, view_texel(m, views))
+    t0 = time.perf_counter()
     _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
+    obj.timings["texture_s"] = time.perf_counter() - t0
     return obj
 
 
@@ -330,8 +342,9 @@ def extract_objects(scene, *, completion: str = "auto", include_skipped: bool = 
 
 
 def extract_scene(scene, *, completion: str = "auto", progress: bool = False, seed: int = 0,
-                  **kw) -> tuple[list[SceneObject], SceneObject | None]:
-    """(objects incl. skipped ones, background or None) of a trained scene.
+                  timings: dict | None = None, **kw) -> tuple[list[SceneObject], SceneObject | None]:
+    """(objects incl. skipped ones, background or None) of a trained scene. timings: a dict that
+    receives the seconds of the scene-level steps (instance meshes, consistency, background).
 
     Every instance is first made a solid (`prepare_solid`), the solids are made consistent as one
     scene (exporters.consistency: floor cut, overlaps removed, room-sized labels left to the
@@ -344,7 +357,10 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.solidify import disc_points
 
+    timings = {} if timings is None else timings
+    t0 = time.perf_counter()
     inst = instance_meshes(scene, progress=progress)
+    timings["instance_meshes_s"] = time.perf_counter() - t0
     floor_z = floor_from_background(inst.background)
     sf = {k: scene.surfels[k].detach().cpu().numpy() for k in ("means", "quats", "scales", "opacities")}
     iid = scene.instance_ids().cpu().numpy()
@@ -355,6 +371,7 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
                                     skipped="no surface fused for this instance"))
             continue
         views = views_of[item.instance_id] = inst.views_for(item.instance_id)
+        members = item.members if item.members is not None else iid == item.instance_id
         support = item.support_z
         if support is None and floor_z is not None and float(item.mesh.bounds[0, 2]) < floor_z + 0.05:
             support = floor_z           # no stuff surfels under it, but it stands at floor level
@@ -365,11 +382,16 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
                                   and len(t.mesh.faces)],
                    "cameras": [(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
                    "depths": [v.depth for v in views], "images": [v.rgb for v in views],
-                   "surfel_points": disc_points(*(sf[k][iid == item.instance_id]
-                                                  for k in ("means", "quats", "scales", "opacities")))}
+                   "surfel_points": disc_points(*(sf[k][members] for k in ("means", "quats", "scales",
+                                                                            "opacities")))}
         objs.append(prepare_solid(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,
                                   completion=completion, context=context, resolution=inst.voxel_size))
+        if item.dropped_surfels:
+            objs[-1].repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away from its "
+                                            "main body left out")
+    t0 = time.perf_counter()
     make_consistent(objs, floor_z)
+    timings["consistency_s"] = time.perf_counter() - t0
     for o in tqdm(objs, desc="object assets", disable=not progress, leave=False):
         finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed, **kw)
     background = inst.background
@@ -379,10 +401,12 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
     if room_sized:
         background = trimesh.util.concatenate([m for m in [background, *room_sized] if m is not None])
     bg = None
+    t0 = time.perf_counter()
     if background is not None and len(background.faces):
         bg = build_background(background, views=inst.views, seed=seed)
         if bg.skipped:
             bg = None
+    timings["background_s"] = time.perf_counter() - t0
     return objs, bg
 
 

@@ -22,19 +22,15 @@ FORMATS = ("mjcf", "usd", "glb")
 
 
 def floor_height(objects, background=None) -> float:
-    """Floor z: the lowest dynamic object's bottom, or the background's dominant upward plane."""
+    """Floor z: the background's floor plane (exporters.consistency, where objects were cut), unless
+    objects reach more than 1 cm below it; else the lowest dynamic object's bottom."""
+    from psimap.exporters.consistency import floor_from_background
+
     lows = [float(o.mesh.bounds[0, 2]) for o in objects]
     z = min(lows) if lows else 0.0
-    if background is not None and len(background.mesh.faces):
-        m = background.mesh
-        up = np.asarray(m.face_normals)[:, 2] > 0.9
-        if up.any():
-            zc = np.asarray(m.triangles_center)[up, 2]
-            area = np.asarray(m.area_faces)[up]
-            hist, edges = np.histogram(zc, bins=max(8, int((zc.max() - zc.min()) / 0.01) + 1), weights=area)
-            zf = float(0.5 * (edges[hist.argmax()] + edges[hist.argmax() + 1]))
-            if not lows or zf <= z + 0.01:
-                z = min(z, zf) if lows else zf
+    zf = floor_from_background(background.mesh) if background is not None else None
+    if zf is not None and (not lows or zf <= z + 0.01):
+        return min(z, zf) if lows else zf
     return z
 
 
@@ -58,20 +54,24 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     if completion not in ("auto", "none"):
         raise PsimapError(f"completion must be 'auto' or 'none', got {completion!r}")
     t0 = time.perf_counter()
+    scene_steps: dict = {}
     if isinstance(scene_or_objects, (list, tuple)):
         all_objs = list(scene_or_objects)
         if any(not isinstance(o, SceneObject) for o in all_objs):
             raise PsimapError("export_scene: expected a Scene or a list of SceneObject")
     else:
         all_objs, background = extract_scene(scene_or_objects, completion=completion, progress=progress,
-                                             seed=seed, **kw)
+                                             seed=seed, timings=scene_steps, **kw)
     t_objects = time.perf_counter() - t0
     objs = [o for o in all_objs if not o.skipped and not o.static]
     names = [o.name for o in objs]
     if len(set(names)) != len(names):
         raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
     floor_z = floor_height(objs, background)
-    timings = {"objects_s": t_objects}
+    timings = {"objects_s": t_objects, **scene_steps}
+    for o in all_objs:      # per asset step, summed over the objects
+        for k, v in o.timings.items():
+            timings[k] = timings.get(k, 0.0) + v
     report = {"format": sorted(fmts), "floor_z": floor_z, "objects": [], "skipped": [],
               "background": None}
     with atomic_dir(out_dir) as tmp:
@@ -91,10 +91,13 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
 
             mj_dir = tmp if "mjcf" in fmts else tmp / ".check"
             xml = write_mjcf(objs, mj_dir, background=background, floor_z=floor_z)
+            timings["mjcf_s"] = time.perf_counter() - t
             if check:
                 from psimap.sim.check import check_mjcf
 
+                t_check = time.perf_counter()
                 res = check_mjcf(xml)
+                timings["check_s"] = time.perf_counter() - t_check
                 timings["sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
                 report["check"] = res
             if "mjcf" not in fmts:
@@ -104,16 +107,20 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         if "usd" in fmts:
             from psimap.exporters.usd import validate_usd, write_usd
 
+            t_usd = time.perf_counter()
             usd_path = write_usd(objs, tmp, background=background, floor_z=floor_z,
                                  nudges=report.get("check", {}).get("nudges", {}))
             report["usd_validation"] = validate_usd(usd_path)
+            timings["usd_s"] = time.perf_counter() - t_usd
             if report["usd_validation"]["errors"]:
                 raise PsimapError(f"USD validation failed: {report['usd_validation']['errors'][0]}")
         if "glb" in fmts:
             from psimap.exporters.glb import write_glb
 
+            t_glb = time.perf_counter()
             write_glb(objs, tmp / "scene.glb", background=background,
                       nudges=report.get("check", {}).get("nudges", {}))
+            timings["glb_s"] = time.perf_counter() - t_glb
         timings["writers_s"] = time.perf_counter() - t
         timings["total_s"] = time.perf_counter() - t0
         write_report(tmp / "report.json", report)

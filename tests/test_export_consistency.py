@@ -167,3 +167,34 @@ def test_failed_check_gives_nonzero_exit_with_report(tmp_path, monkeypatch, caps
     assert rep["check"]["passed"] is False and rep["check"]["fell"]["box_1"] > 0.2
     opts.no_check, opts.out = True, str(tmp_path / "out2")
     assert cli_export(opts) == 0
+
+
+# ---------------------------------------------------------------- instance main body, support
+def test_main_body_keeps_the_largest_cluster_of_a_label():
+    from psimap.exporters.instance_meshes import main_body
+
+    rng = np.random.default_rng(0)
+    table = np.column_stack([rng.uniform(0, 1, (400, 2)), np.full(400, 0.75)])       # 1 m x 1 m top
+    far = np.column_stack([rng.uniform(3, 3.05, (30, 2)), np.full(30, 0.2)])         # a bottle 3 m away
+    other = np.column_stack([rng.uniform(0, 1, (50, 2)), np.full(50, 0.0)])         # another label
+    means = np.concatenate([table, far, other])
+    scales = np.full((len(means), 2), 0.03)
+    sel = np.zeros(len(means), bool)
+    sel[:430] = True
+    body = main_body(means, scales, sel)
+    assert body[:400].all() and not body[400:].any()
+    assert main_body(means, scales, np.zeros(len(means), bool)).sum() == 0
+
+
+def test_support_is_the_highest_surface_under_the_object_not_a_neighbour_top():
+    from psimap.exporters.instance_meshes import support_height
+
+    rng = np.random.default_rng(3)
+    floor = np.column_stack([rng.uniform(-1, 1, (2000, 2)), np.full(2000, 0.0)])
+    table = np.column_stack([rng.uniform(-0.5, 0.5, (800, 2)), np.full(800, 0.75)])
+    box_top = np.column_stack([rng.uniform(0.12, 0.2, (40, 2)), np.full(40, 0.9)])  # a box beside it
+    pts = np.concatenate([floor, table, box_top])
+    bottle = trimesh.creation.cylinder(radius=0.03, height=0.25).apply_translation([0.05, 0, 0.75 + 0.125 - 0.01])
+    assert support_height(bottle, pts) == pytest.approx(0.75)     # sunk 1 cm into the top: still the top
+    on_floor = bottle.copy().apply_translation([0.7, 0.7, -0.74])
+    assert support_height(on_floor, pts) == pytest.approx(0.0)
