@@ -27,8 +27,12 @@ class PanopticConfig:
     topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
     temperature: float = 0.1        # softmax temperature over query affinities
     init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
-    min_mask_fraction: float = 0.002  # 2D masks smaller than this fraction of the image are ignored
-    pixels_per_step: int = 4096     # pixels sampled per frame for matching and losses
+    # 2D masks smaller than this fraction of the image are ignored (5 px at 160x120: bottles and
+    # balls there cover a median 7-20 px; the former 0.002 = 38 px ignored most of their masks)
+    min_mask_fraction: float = 0.0003
+    # pixels sampled per frame for matching and losses (all of a 160x120 frame: at 4096 a 12 px
+    # mask kept ~3 pixels and its matching cost was noise)
+    pixels_per_step: int = 20000
     w_ins: float = 1.0              # lambda_3
     w_sem: float = 1.0              # lambda_4
     lr_surfel: float = 0.02         # Adam lr of per-surfel features
@@ -138,9 +142,12 @@ class PanopticField(nn.Module):
         self.queries = queries
         self.matched = torch.zeros(queries.count)
         self.visible = torch.zeros(queries.count)
+        self.fragment = torch.zeros(queries.count)     # frames where it drew part of another's object
         self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
         self.steps = 0
         self._pending: list[torch.Tensor] = []        # point sets of masks no query covers
+        self.last_drops: dict[str, int] = {}
+        self.drop_log: list[tuple[int, dict]] = []    # (step, {rule: queries dropped}) per adjustment
         self._gen = generator
         self._make_optimizers()
 
@@ -176,25 +183,44 @@ class PanopticField(nn.Module):
         a = len(groups)
         self.matched = torch.cat([self.matched, torch.zeros(a)])
         self.visible = torch.cat([self.visible, torch.zeros(a)])
+        self.fragment = torch.cat([self.fragment, torch.zeros(a)])
         self.born = torch.cat([self.born, torch.full((a,), float(self.steps))])
         self._make_optimizers()
 
-    def _queue_uncovered(self, masks: torch.Tensor, matched_masks: torch.Tensor, depth: torch.Tensor,
+    def _queue_uncovered(self, masks: torch.Tensor, match, prob: torch.Tensor, depth: torch.Tensor,
                          K: torch.Tensor, w2c: torch.Tensor) -> None:
-        """Queue back-projected points of unmatched masks whose centre lies outside every query's
-        3-sigma ellipsoid (a mask inside some query's Gaussian is that query's to learn)."""
-        unmatched = [m for m in range(masks.shape[0]) if m not in set(matched_masks.tolist())]
+        """Queue back-projected points of unmatched masks that no free query explains.
+
+        masks [M, H, W] bool; prob [H*W, Q] the queries' rendered probabilities (detached). A query
+        matched to another mask in this frame is busy with that object, so only the free (unmatched)
+        queries can cover a mask: by rendering it (mean probability > 0.5 over its pixels) or by
+        holding its 3D centre within 3 sigma. Checking every query instead blocked objects resting
+        on a large one (bottles on a table lie inside the table query's Gaussian) from ever getting
+        a query of their own.
+        """
+        taken = set(match.mask_idx.tolist())
+        unmatched = [m for m in range(masks.shape[0]) if m not in taken]
         if not unmatched or self.queries.count >= self.cfg.max_queries:
             return
+        free = torch.ones(self.queries.count, dtype=torch.bool)
+        free[match.query_idx] = False
         c2w = torch.linalg.inv(w2c.double())
-        for m in unmatched[: self.cfg.max_spawn_per_step]:
+        queued = 0
+        for m in unmatched:
+            if queued >= self.cfg.max_spawn_per_step:
+                break
+            pix = masks[m].reshape(-1)
+            if bool(free.any()) and float(prob[pix][:, free].mean(0).max()) > 0.5:
+                continue
             pts = backproject(depth, K, c2w, masks[m])
-            if pts.shape[0] < 8:
+            if pts.shape[0] < 3:
                 continue
             with torch.no_grad():
-                if self.queries.count and float(self.queries.mahalanobis2(pts.mean(0, keepdim=True)).min()) < 9.0:
+                if bool(free.any()) and float(
+                        self.queries.mahalanobis2(pts.mean(0, keepdim=True))[:, free].min()) < 9.0:
                     continue
             self._pending.append(pts)
+            queued += 1
 
     def remap(self, idx: torch.Tensor) -> None:
         """Follow the trainer's densification: new surfel j takes old surfel idx[j]'s parameters."""
@@ -247,18 +273,34 @@ class PanopticField(nn.Module):
             masks = thing_masks(instance, semantic, self.class_ids, self.class_thing, min_px)
             info["masks"] = int(masks.shape[0])
             with torch.no_grad():
-                # a query is "seen" by this frame when it renders at least a small mask here; its
-                # centre merely projecting into the image would count hidden objects too, which
-                # then look unmatched and are pruned as useless
-                self.visible += (img[:, :q].sum(0) >= min_px).float()
+                # a query is "seen" by this frame when it owns (p > 0.5) at least a small mask here.
+                # Its centre merely projecting into the image would count hidden objects too, and
+                # its summed probability counts every frame: the softmax leaves each query a little
+                # mass on every surfel (then all queries were "seen" in every frame and those of
+                # objects in few frames were pruned as useless)
+                owned = img[:, :q] > 0.5                                          # [HW, Q]
+                seen = owned.sum(0) >= min_px
+                self.visible += seen.float()
             if masks.shape[0]:
                 target = masks.reshape(masks.shape[0], -1)[:, pix].float()        # [M, P]
                 prob = img[pix, :q].T.clamp(0.0, 1.0)                             # [Q, P]
                 match = hungarian_match(prob, target, reject_dice=cfg.reject_dice)
                 l_ins = matched_mask_loss(prob, target, match)
                 self.matched[match.query_idx] += 1
+                with torch.no_grad():
+                    # A free query that draws mostly inside a mask matched to another query is a
+                    # fragment of that query's object (two queries that split one object: each
+                    # wins its part, their 3D masks no longer overlap and IoM never sees it).
+                    busy = torch.zeros(hw, dtype=torch.bool)
+                    if match.mask_idx.numel():
+                        busy = masks[match.mask_idx].reshape(match.mask_idx.numel(), -1).any(0)
+                    free = seen.clone()
+                    free[match.query_idx] = False
+                    if bool(free.any()):
+                        inside = (owned[:, free] & busy[:, None]).sum(0) / owned[:, free].sum(0).clamp_min(1)
+                        self.fragment[free] += (inside > self.cfg.iom_threshold).float()
                 if cfg.spawn and depth is not None:
-                    self._queue_uncovered(masks, match.mask_idx, depth, K, w2c)
+                    self._queue_uncovered(masks, match, img[:, :q].detach(), depth, K, w2c)
                 info["matched"] = int(match.query_idx.numel())
         # Semantic: cross-entropy of alpha-normalised blended logits on labelled, covered pixels.
         l_sem = zero
@@ -297,10 +339,21 @@ class PanopticField(nn.Module):
             masks = torch.softmax(self.affinity_all(means) / self.queries.temperature, -1) > self.cfg.mask_share
         else:
             masks = self.affinity_all(means) > self.cfg.mask_affinity               # [N, Q]
-        drop = duplicate_queries(masks, self.cfg.iom_threshold)
-        drop |= useless_queries(self.matched, self.visible, self.cfg.min_match_rate)
-        drop |= masks.sum(0) == 0                                                    # covers nothing
-        drop &= (self.steps - self.born) >= self.cfg.adjust_every                   # grace for new ones
+        old_enough = (self.steps - self.born) >= self.cfg.adjust_every              # grace for new ones
+        dup = duplicate_queries(masks, self.cfg.iom_threshold) & old_enough
+        useless = useless_queries(self.matched, self.visible, self.cfg.min_match_rate) & old_enough
+        # never matched in a frame though it has lived a full adjustment period: it owns no pixel
+        # anywhere (visible stays 0, so the rate test above cannot see it) yet would own surfels
+        # by argmax at export
+        useless |= (self.matched == 0) & old_enough
+        fragment = (self.fragment >= 0.5 * self.visible) & (self.visible >= 3) & old_enough
+        empty = (masks.sum(0) == 0) & old_enough                                     # covers nothing
+        drop = dup | useless | empty | fragment
+        # which rule fired (a query may break several): read by the log and the benchmark
+        self.last_drops = {"duplicate": int(dup.sum()), "fragment": int((fragment & ~dup).sum()),
+                           "useless": int((useless & ~dup & ~fragment).sum()),
+                           "empty": int((empty & ~dup & ~useless & ~fragment).sum())}
+        self.drop_log.append((self.steps, dict(self.last_drops)))
         if bool(drop.all()):                                                         # keep the best one
             drop[int(torch.argmax(self.matched))] = False
         keep = ~drop
@@ -309,6 +362,7 @@ class PanopticField(nn.Module):
             self.queries.keep(keep)
             self.matched = self.matched[keep]
             self.visible = self.visible[keep]
+            self.fragment = self.fragment[keep]
             self.born = self.born[keep]
             self._make_optimizers()
         return removed
@@ -325,7 +379,8 @@ class PanopticField(nn.Module):
 
         semantic_id [N] = class of the largest logit; instance_id [N] = 1 + the query of largest
         affinity for thing surfels (0 for stuff), renumbered 1..I over instances with at least
-        `min_instance_surfels` surfels; instance_class {id: class id by majority vote}.
+        `min_instance_surfels` surfels (their queries are `kept` [I]; the others own nothing);
+        instance_class {id: class id by majority vote}, also written to the instance's surfels.
         """
         n = means.shape[0]
         with torch.no_grad():
@@ -339,6 +394,7 @@ class PanopticField(nn.Module):
             q = self.queries.count
             inst = torch.zeros(n, dtype=torch.long)
             instance_class: dict[int, int] = {}
+            kept = torch.zeros(0, dtype=torch.long)      # queries that own an instance, in id order
             if q:
                 owner = self.affinity_all(means).argmax(-1)
                 owner[~is_thing] = -1
@@ -348,11 +404,15 @@ class PanopticField(nn.Module):
                 new_id[kept] = torch.arange(1, kept.numel() + 1)
                 inst = torch.where(owner >= 0, new_id[owner.clamp_min(0)], inst)
                 for j in range(1, kept.numel() + 1):
-                    members = sem[inst == j]
+                    own = inst == j
+                    members = sem[own]
                     members = members[members > 0]
                     if members.numel():
                         instance_class[j] = int(torch.mode(members).values)
-        return {"instance_id": inst, "semantic_id": sem, "instance_class": instance_class}
+                        # one class per instance (a COCO segment has one category): stray surfels
+                        # of an instance, e.g. table surfels under a bottle's query, take its class
+                        sem[own] = instance_class[j]
+        return {"instance_id": inst, "semantic_id": sem, "instance_class": instance_class, "kept": kept}
 
     def state_for_checkpoint(self, means: torch.Tensor) -> dict:
         """Surfel features, hard labels and queries in the checkpoint's layout."""
@@ -361,8 +421,9 @@ class PanopticField(nn.Module):
         return {
             "surfels": {"semantic": self.semantic.detach().clone(), "instance": self.instance.detach().clone(),
                         "instance_id": lab["instance_id"], "semantic_id": lab["semantic_id"]},
-            "queries": {"feature": self.global_query_features(means).clone(),
-                        "mean": self.queries.mean.detach().clone(), "cov": cov.clone()},
+            # only the queries that own an instance are stored: stored query j is instance j + 1
+            "queries": {"feature": self.global_query_features(means)[lab["kept"]].clone(),
+                        "mean": self.queries.mean.detach()[lab["kept"]].clone(), "cov": cov[lab["kept"]].clone()},
             "instance_class": lab["instance_class"],
             "config": asdict(self.cfg),
         }
@@ -446,6 +507,7 @@ def _fit_panoptic(surfels, frames, classes, *, iters, cfg, seed, backend, progre
         if progress:
             bar.set_postfix(ins=f"{float(l_ins):.3f}", sem=f"{float(l_sem):.3f}", queries=field.queries.count)
         if log is not None and (removed or it % 50 == 0):
+            drops = ", ".join(f"{v} {k}" for k, v in field.last_drops.items() if v) if removed else ""
             log(f"step {it}: L_ins {float(l_ins):.4f} L_sem {float(l_sem):.4f} queries {field.queries.count}"
-                + (f" (-{removed})" if removed else ""))
+                + (f" (-{removed}: {drops})" if removed else ""))
     return field.state_for_checkpoint(means)

@@ -102,7 +102,8 @@ def panoptic_phase(params: dict, frames, classes, cfg, *, index, spacing: float,
         removed = field.maybe_adjust(params["means"].detach())
         removed_total += removed
         if removed:
-            log(f"panoptic step {step}: dropped {removed} useless/duplicate queries, {field.queries.count} left")
+            drops = ", ".join(f"{v} {k}" for k, v in field.last_drops.items() if v)
+            log(f"panoptic step {step}: dropped {removed} queries ({drops}), {field.queries.count} left")
         if (step + 1) % cfg.log_every == 0:
             bar.set_postfix(ins=f"{float(l_ins.detach()):.3f}", sem=f"{float(l_sem.detach()):.3f}",
                             queries=field.queries.count)
@@ -112,10 +113,12 @@ def panoptic_phase(params: dict, frames, classes, cfg, *, index, spacing: float,
         params[k] = params[k].detach()
     state = field.state_for_checkpoint(params["means"])
     n_inst = int(state["surfels"]["instance_id"].max()) if n else 0
+    # the checkpoint keeps only the queries that own an instance at export
+    q_final = int(state["queries"]["feature"].shape[0])
     metrics = {"panoptic_steps": int(cfg.panoptic_iters), "panoptic_seconds": time.perf_counter() - t0,
-               "queries_initial": int(q0), "queries_final": int(field.queries.count),
+               "queries_initial": int(q0), "queries_final": q_final,
                "queries_removed": int(removed_total), "instances": n_inst,
                "panoptic_skipped_steps": int(guard.skipped)}
-    log(f"panoptic: {field.queries.count} queries (from {q0}), {n_inst} instances, "
+    log(f"panoptic: {q_final} queries (from {q0}), {n_inst} instances, "
         f"{metrics['panoptic_seconds']:.1f} s")
     return state, metrics
