@@ -187,8 +187,11 @@ def main(argv=None):
     header = ["scene", "method", "accuracy (cm)", "completeness (cm)", "Chamfer-L1 (cm)", "F1@5cm",
               "time (s)", "surfels"]
     table = markdown_table(header, rows)
-    notes = [f"{iters} training iterations; time = training + mesh extraction (TSDF: fusion only); "
-             f"F1 at 5 cm, completeness on camera-seen GT (DESIGN.md metrics)."]
+    import os
+
+    notes = [f"{iters} training iterations, seed {args.seed}; time = training + mesh extraction (TSDF: "
+             f"fusion only); F1 at 5 cm, completeness on camera-seen GT (DESIGN.md metrics). Load "
+             f"average at the end {os.getloadavg()[0]:.1f} on 2 shared cores: wall times are noisy."]
     if curves.get("iters"):
         notes.append("Iterations vs F1 / time (first scene): " + ", ".join(
             f"{s}: F1 {f1:.3f} @ {t:.0f} s" for s, t, f1, _ in curves["iters"]) +

@@ -98,11 +98,14 @@ def test_resume_continues(trained, scene_frames, tmp_path):
     frames, _ = scene_frames
     ckpt = tmp_path / "scene.ckpt"
     trained.save(ckpt)
-    resumed = train(sequence(frames), cfg(iters=20), resume=ckpt, log=lambda m: None)
+    # full resolution from the first step: the comparison below is on the frames trained last
+    resumed = train(sequence(frames), cfg(iters=20, lowres_until=0.0), resume=ckpt, log=lambda m: None)
     assert resumed.metrics["steps"] == trained.metrics["steps"] + 20
     # starts where the first run ended, far below a fresh start
     assert resumed.metrics["depth_l1_start"] == pytest.approx(trained.metrics["depth_l1_end"], rel=1e-4)
-    assert resumed.metrics["loss_start"]["total"] < 0.8 * trained.metrics["loss_start"]["total"]
+    # (the same first step from a fresh start: same seed, so the same frame at the same resolution)
+    fresh = train(sequence(frames), cfg(iters=20, lowres_until=0.0), log=lambda m: None)
+    assert resumed.metrics["loss_start"]["total"] < 0.8 * fresh.metrics["loss_start"]["total"]
 
 
 def test_frames_without_depth_are_skipped(scene_frames):
@@ -220,3 +223,100 @@ def test_cli_train_mesh_and_errors(scene_frames, tmp_path):
     (tmp_path / "bad.ckpt").write_bytes(ckpt.read_bytes()[:1000])
     assert main(["mesh", str(tmp_path / "bad.ckpt"), "--out", str(tmp_path / "y.ply")]) == 1
     assert not (tmp_path / "x.ckpt").exists() and not (tmp_path / "y.ply").exists()
+
+
+def _plane_grid(step=0.08, half=0.8):
+    """Surfels on the z = 0 plane (grid `step`), checker colours: means [N,3], quats, colours."""
+    g = np.arange(-half, half + 1e-9, step)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    means = np.concatenate([xy, np.zeros((len(xy), 1))], 1)
+    checker = ((np.floor(xy[:, 0] / 0.24) + np.floor(xy[:, 1] / 0.24)) % 2)[:, None] > 0
+    colors = np.where(checker, [0.8, 0.3, 0.2], [0.2, 0.4, 0.9])
+    return means, np.tile([1.0, 0, 0, 0], (len(xy), 1)), colors
+
+
+def test_accumulate_is_in_ndc_units():
+    """One surfel 2 m in front of the camera, world gradient 1e-3 along camera x: the screen-space
+    gradient is 1e-3 * z / fx pixels^-1 * W / 2 = 1e-3 * 2 / 52 * 32 in NDC (3DGS units)."""
+    from psimap.train.density import GradStats, accumulate
+
+    viewmat = torch.eye(4)
+    Kt = torch.tensor(K, dtype=torch.float32)
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.0], [0.0, 0.0, -1.0]])
+    grad = torch.tensor([[1e-3, 0.0, 0.0], [0.0, 1e-3, 5.0], [1e-3, 0.0, 0.0]])
+    st = GradStats.zeros(3)
+    accumulate(st, grad, means, viewmat, Kt, W, H)
+    accumulate(st, torch.zeros(3, 3), means, viewmat, Kt, W, H)    # unseen view: not counted
+    g = st.mean()
+    assert float(g[0]) == pytest.approx(1e-3 * 2 / 52 * W / 2, rel=1e-5)
+    assert float(g[1]) == pytest.approx(1e-3 * 2 / 52 * H / 2, rel=1e-5)   # depth gradient ignored
+    assert float(g[2]) == 0.0 and float(st.count[2]) == 0.0                # behind the camera
+    assert st.count.tolist()[:2] == [1.0, 1.0]
+
+
+def test_density_control_densifies_where_the_map_is_missing():
+    """A plane with a hole in its surfels, supervised by renders of the full plane: the default
+    threshold (NDC units) clones the surfels around the hole and leaves the fitted ones alone.
+    In pixel units the same threshold cloned only a few (it was W / 2 = 32 times stricter)."""
+    from psimap.camera import look_at
+    from psimap.train.density import GradStats, accumulate, densify_and_prune
+    from psimap.train.trainer import _optimizer, _to_train_frame, loss_terms, make_params, render
+
+    means, q, colors = _plane_grid()
+    n = len(means)
+    full = make_params(means, q, np.full((n, 2), 0.05), np.full(n, 0.9), colors)
+    centre = np.array([0.3, 0.2])
+    keep = np.linalg.norm(means[:, :2] - centre, axis=1) >= 0.2
+    views = []
+    for eye in ([0, 0, 2.0], [0.3, -0.2, 1.9], [-0.2, 0.3, 2.1]):
+        c2w = look_at(np.array(eye), (0.0, 0.0, 0.0))
+        blank = _to_train_frame("v", np.zeros((H, W, 3)), np.zeros((H, W)), K, c2w)
+        with torch.no_grad():
+            out = render(full, blank)
+        views.append(_to_train_frame("v", out.rgb.numpy(), np.where(out.alpha.numpy() > 0.5,
+                                                                   out.depth.numpy(), 0), K, c2w))
+    cfg_ = TrainConfig(use_prior=False)
+    m = int(keep.sum())
+    params = make_params(means[keep], q[keep], np.full((m, 2), 0.05), np.full(m, 0.9), colors[keep])
+    opt, _ = _optimizer(params, cfg_, 1.0)
+    stats = GradStats.zeros(m)
+    for fr in views:
+        terms, _ = loss_terms(params, fr, cfg_, None, 0.08, False)
+        sum(terms.values()).backward()
+        accumulate(stats, params["means"].grad, params["means"].detach(), fr.viewmat, fr.K, W, H)
+        opt.zero_grad(set_to_none=True)
+    dist = np.linalg.norm(means[keep][:, :2] - centre, axis=1)
+    near, far = dist < 0.35, dist > 0.6
+    r = densify_and_prune(params, opt, stats, grad_threshold=cfg_.grad_threshold, large_scale=1.0,
+                          prune_opacity=0.05, max_scale=10.0, budget=10 * m,
+                          generator=torch.Generator().manual_seed(0))
+    cloned = (stats.mean() > cfg_.grad_threshold).numpy()
+    assert r["cloned"] == int(cloned.sum()) and r["split"] == 0
+    assert cloned[near].mean() > 0.9, cloned[near].mean()          # the hole's rim densifies
+    assert cloned[far].mean() < 0.1, cloned[far].mean()            # fitted surfels do not
+    assert r["surfels"] == m + r["cloned"]
+    # the pixel-unit statistic (the old behaviour) misses most of the rim
+    assert ((stats.mean() / (W / 2)).numpy()[near] > cfg_.grad_threshold).mean() < 0.5
+
+
+def test_median_depth_loss_moves_the_front_surfel():
+    """Two layers: the front surfel (the median, what the mesh fuses) sits 10 cm before the target;
+    the median-depth term pulls that front surfel, not the one behind it, to the target."""
+    from psimap.train.trainer import _to_train_frame, loss_terms, make_params
+
+    means = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.2]])         # camera looks down from z = 2
+    params = make_params(means, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 2), 2.0),
+                         np.array([0.9, 0.9]), np.full((2, 3), 0.5))
+    from psimap.camera import look_at
+
+    c2w = look_at(np.array([0.0, 0.0, 2.0]), (0.0, 0.0, 0.0))
+    fr = _to_train_frame("v", np.full((H, W, 3), 0.5), np.full((H, W), 2.1), K, c2w)
+    cfg_ = TrainConfig(use_prior=False, lambda_rgb=0.0, lambda_iso=0.0, lambda_depth=0.0,
+                       lambda_depth_median=1.0)
+    terms, out = loss_terms(params, fr, cfg_, None, 0.1, False)
+    assert "depth_median" in terms and float(terms["rgb"].detach()) == 0.0
+    assert float(out.median_depth.detach()[H // 2, W // 2]) == pytest.approx(2.0, abs=1e-3)
+    assert float(terms["depth_median"].detach()) == pytest.approx(0.1, abs=2e-3)
+    terms["depth_median"].backward()
+    g = params["means"].grad
+    assert float(g[0, 2]) > 0 and float(g[1].abs().sum()) == 0.0   # only the front surfel, pushed down

@@ -14,7 +14,8 @@ import torch
 
 @dataclass
 class GradStats:
-    """Running mean of each surfel's view-space positional gradient (pixels) over the views it was in."""
+    """Running mean of each surfel's screen-space positional gradient (NDC units, as 3DGS / 2DGS)
+    over the views it was in."""
 
     total: torch.Tensor      # [N]
     count: torch.Tensor      # [N]
@@ -27,20 +28,24 @@ class GradStats:
         return self.total / self.count.clamp_min(1)
 
 
-def accumulate(stats: GradStats, grad_means, means, viewmat, focal: float) -> None:
-    """Add one view's view-space gradient magnitude.
+def accumulate(stats: GradStats, grad_means, means, viewmat, K, width: int, height: int) -> None:
+    """Add one view's screen-space gradient magnitude in NDC units.
 
-    grad_means [N,3] dL/dmu (world); means [N,3]; viewmat [4,4]; focal in pixels. Moving a surfel by
-    one pixel moves it z / f metres, so |dL/dpixel| ~ |dL/dmu_parallel| * z / f, the component of
-    the gradient parallel to the image plane (the 3DGS densification signal in pixel units).
+    grad_means [N,3] dL/dmu (world); means [N,3]; viewmat [4,4] world-to-camera; K [3,3] pixels.
+    Moving a surfel by one pixel along x moves it z / fx metres parallel to the image plane, so
+    dL/du = dL/dx_cam * z / fx; NDC spans the image with 2 units, u = (x_ndc + 1) W / 2, so
+    dL/dx_ndc = dL/du * W / 2 (and H / 2 for y). This is the quantity 3DGS / 2DGS threshold (2e-4);
+    in pixel units the same threshold would be W / 2 times stricter and hardly ever trigger.
     """
     with torch.no_grad():
         R = viewmat[:3, :3]
         g_cam = grad_means @ R.T                                   # [N, 3] camera-frame gradient
-        z = means @ R[2] + viewmat[2, 3]
-        g_pix = g_cam[:, :2].norm(dim=1) * z.clamp_min(1e-6) / focal
-        seen = (grad_means.abs().sum(1) > 0) & (z > 0)
-        stats.total += torch.where(seen, g_pix, torch.zeros_like(g_pix))
+        z = (means @ R[2] + viewmat[2, 3]).clamp_min(1e-6)
+        gx = g_cam[:, 0] * z / float(K[0, 0]) * (0.5 * width)
+        gy = g_cam[:, 1] * z / float(K[1, 1]) * (0.5 * height)
+        g_ndc = torch.sqrt(gx * gx + gy * gy)
+        seen = (grad_means.abs().sum(1) > 0) & (means @ R[2] + viewmat[2, 3] > 0)
+        stats.total += torch.where(seen, g_ndc, torch.zeros_like(g_ndc))
         stats.count += seen.float()
 
 

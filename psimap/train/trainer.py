@@ -275,6 +275,9 @@ def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: f
     terms["rgb"] = cfg.lambda_rgb * L.rgb_loss(out.rgb, fr.rgb, cfg.ssim_weight)
     if cfg.lambda_depth > 0:
         terms["depth"] = cfg.lambda_depth * L.depth_l1(out.depth, fr.depth, fr.valid)
+    if cfg.lambda_depth_median > 0:
+        terms["depth_median"] = cfg.lambda_depth_median * L.depth_l1(
+            out.median_depth, fr.depth, fr.valid & (out.median_depth > 0))
     scales = params["log_scales"].exp()
     if cfg.lambda_iso > 0:
         terms["iso"] = cfg.lambda_iso * L.iso_loss(scales, spacing)
@@ -420,8 +423,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
             continue
         guard.ok()
         if step < dens_until:
-            accumulate(grad_stats, params["means"].grad, params["means"].detach(), fr.viewmat,
-                       float(0.5 * (fr.K[0, 0] + fr.K[1, 1])))
+            accumulate(grad_stats, params["means"].grad, params["means"].detach(), fr.viewmat, fr.K,
+                       fr.width, fr.height)
         # position step decays exponentially to 1 % (coarse moves first, then refinement)
         optimizer.param_groups[0]["lr"] = lr_means0 * 0.01 ** (step / max(iters - 1, 1))
         optimizer.step()
@@ -440,6 +443,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
                                   large_scale=cfg.split_scale * spacing, prune_opacity=cfg.prune_opacity,
                                   max_scale=cfg.prune_scale * extent, budget=budget, generator=gen)
             dens_log.append({"step": steps_before + step + 1, **r})
+            log(f"density control at step {steps_before + step + 1}: {r['cloned']} cloned, {r['split']} split, "
+                f"{r['pruned']} pruned -> {r['surfels']} surfels (budget {budget})")
             grad_stats = GradStats.zeros(params["means"].shape[0])
         if (step + 1) % cfg.log_every == 0 or step == iters - 1:
             history.append({"step": steps_before + step + 1, "loss": ema["total"],
