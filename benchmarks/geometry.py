@@ -72,7 +72,7 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
             if step in marks:
                 snaps[step] = (surfel_values(params), elapsed)
 
-        cfg = TrainConfig(iters=iters, seed=seed, use_prior=prior)
+        cfg = TrainConfig(iters=iters, seed=seed, use_prior=prior, panoptic=False)   # geometry only
         t = time.perf_counter()
         scene = train(str(data), cfg, callback=cb, log=lambda s: print("   ", s, flush=True))
         t_train = time.perf_counter() - t
@@ -83,6 +83,7 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
         rows.append([label, name, m["accuracy"] * 100, m["completeness"] * 100, m["chamfer_l1"] * 100,
                      m["f1"], t_train + t_mesh, len(scene)])
         print(rows[-1], f"(train {t_train:.1f} s, mesh {t_mesh:.1f} s)", flush=True)
+        curve_data.setdefault("densify", []).append((label, name, scene.metrics.get("densify", [])))
         if curves and prior:
             it_curve = []
             for step in sorted(snaps):
@@ -151,7 +152,7 @@ def run_chess(iters, seed, n_frames, rows):
                     colors=[f.rgb for f in frames])
     t_raw = time.perf_counter() - t
     t = time.perf_counter()
-    scene = train(sub, TrainConfig(iters=iters, seed=seed), log=lambda s: print("   ", s, flush=True))
+    scene = train(sub, TrainConfig(iters=iters, seed=seed, panoptic=False), log=lambda s: print("   ", s, flush=True))
     t_train = time.perf_counter() - t
     t = time.perf_counter()
     mesh = scene.mesh()
@@ -163,6 +164,30 @@ def run_chess(iters, seed, n_frames, rows):
     print(rows[-1], flush=True)
 
 
+def run_default(frames, width, height, seed, samples):
+    """The default `psimap train` (geometry + panoptic phase, TrainConfig defaults) on one scene:
+    wall and CPU time, surfels, and the mesh's F1 / Chamfer."""
+    import os
+
+    from psimap.data.synthetic import generate
+    from psimap.train.config import TrainConfig
+    from psimap.train.trainer import train
+
+    data = OUT / f"geometry_scene_{frames}x{width}x{height}_s{seed}"
+    if not (data / "transforms.json").exists():
+        generate(data, seed, frames=frames, width=width, height=height, progress=False)
+    load0 = os.getloadavg()[0]
+    scene = train(str(data), TrainConfig(seed=seed), log=lambda s: print("   ", s, flush=True))
+    m = _geo(scene.mesh(), data, samples)
+    met = scene.metrics
+    row = [f"{frames} frames {width}x{height}", met["steps"], TrainConfig().panoptic_iters,
+           met["seconds"], met["cpu_seconds"], len(scene), m["f1"], m["chamfer_l1"] * 100,
+           f"{load0:.1f} / {os.getloadavg()[0]:.1f}"]
+    table = markdown_table(["scene", "geometry steps", "panoptic steps", "wall (s)", "CPU (s)", "surfels",
+                            "F1@5cm", "Chamfer-L1 (cm)", "load avg start / end"], [row])
+    return table
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small scene, few iterations, no chess")
@@ -172,17 +197,32 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=100_000, help="max points sampled per mesh")
     ap.add_argument("--chess-frames", type=int, default=60)
     ap.add_argument("--no-chess", action="store_true")
+    ap.add_argument("--no-curves", action="store_true", help="skip the iteration and voxel curves")
     ap.add_argument("--no-append", action="store_true", help="print tables only")
+    ap.add_argument("--default-train", action="store_true",
+                    help="only time the default training (panoptic phase included) at the first size")
     args = ap.parse_args(argv)
     from psimap.train.config import TrainConfig
 
     OUT.mkdir(exist_ok=True)
     iters = args.iters or (150 if args.quick else TrainConfig().iters)
     sizes = args.sizes or ("20x80x60" if args.quick else "60x160x120,30x80x60,60x240x180")
+    if args.default_train:
+        OUT.mkdir(exist_ok=True)
+        f, w, h = (int(v) for v in (args.sizes or "60x160x120").split(",")[0].split("x"))
+        table = run_default(f, w, h, args.seed, args.samples)
+        note = ("Default `psimap train` settings (TrainConfig defaults, panoptic phase on); target <= 3 min "
+                "on this 2-core machine. CPU = process time (training is single-threaded, so on an idle "
+                "machine wall ~ CPU); the machine was shared with other jobs.")
+        print(table)
+        if not args.no_append:
+            append_results("Geometry: default demo-size training time", table, note)
+        return
     rows, curves = [], {}
     for k, s in enumerate([] if sizes == "none" else sizes.split(",")):
         f, w, h = (int(v) for v in s.split("x"))
-        run_size(f"{f} frames {w}x{h}", f, w, h, iters, args.seed, args.samples, k == 0, rows, curves)
+        run_size(f"{f} frames {w}x{h}", f, w, h, iters, args.seed, args.samples,
+                 k == 0 and not args.no_curves, rows, curves)
     plot_curves(curves)
     header = ["scene", "method", "accuracy (cm)", "completeness (cm)", "Chamfer-L1 (cm)", "F1@5cm",
               "time (s)", "surfels"]
@@ -190,7 +230,7 @@ def main(argv=None):
     import os
 
     notes = [f"{iters} training iterations, seed {args.seed}; time = training + mesh extraction (TSDF: "
-             f"fusion only); F1 at 5 cm, completeness on camera-seen GT (DESIGN.md metrics). Load "
+             f"fusion only; panoptic phase off); F1 at 5 cm, completeness on camera-seen GT (DESIGN.md metrics). Load "
              f"average at the end {os.getloadavg()[0]:.1f} on 2 shared cores: wall times are noisy."]
     if curves.get("iters"):
         notes.append("Iterations vs F1 / time (first scene): " + ", ".join(
@@ -200,6 +240,9 @@ def main(argv=None):
         notes.append("TSDF voxel vs F1 / time: " + ", ".join(
             f"{v * 100:.1f} cm: F1 {f1:.3f} in {t:.1f} s" for v, t, f1, _ in curves["voxel"]) +
             " — plot bench_out/geometry_voxel.png")
+    for label, name, rounds in curves.get("densify", []):
+        notes.append(f"Density control, {label}, {name} (step: cloned / split / pruned -> surfels): " + ", ".join(
+            f"{r['step']}: {r['cloned']} / {r['split']} / {r['pruned']} -> {r['surfels']}" for r in rounds))
     chess_rows = []
     if not (args.quick or args.no_chess) and CHESS.exists():
         run_chess(iters, args.seed, args.chess_frames, chess_rows)
