@@ -267,29 +267,44 @@ def project_to_surfels(mesh, centres: np.ndarray, normals: np.ndarray, k: int = 
 
 
 def support_height(mesh, support_points: np.ndarray, margin: float = 0.05, sink: float = 0.02,
-                   tol: float = 0.01, min_count: int = 3) -> float | None:
+                   tol: float = 0.01, min_count: int = 3, max_gap: float = np.radians(200)) -> float | None:
     """z of the surface `mesh` rests on, or None when there is none.
 
     support_points [n, 3]: up-facing surfel centres of everything else (floor, table tops). Those
-    inside the footprint (grown by `margin`) and no higher than `sink` above the object's lowest
-    point (a fused bottom sinks into its support by the surfel blur) are candidates; the highest
-    level held by at least `min_count` of them within `tol` is the support (a bottle on a table
-    rests on the table top, not on the floor seen under the table).
+    inside the footprint grown by `margin` and below the object's mid-height are candidates, as
+    levels (points within `tol`, at least `min_count`). The highest level that surrounds the object
+    (no angular gap wider than `max_gap` around its centre) is its support: a fused bottom can sink
+    centimetres into a table top, and the top of a shorter neighbour beside it lies on one side
+    only. Without a surrounding level, the highest one no more than `sink` above its lowest point.
     """
     if len(support_points) == 0:
         return None
     lo, hi = np.asarray(mesh.bounds)
     p = support_points
     inside = ((p[:, 0] > lo[0] - margin) & (p[:, 0] < hi[0] + margin) & (p[:, 1] > lo[1] - margin)
-              & (p[:, 1] < hi[1] + margin) & (p[:, 2] < lo[2] + sink))
+              & (p[:, 1] < hi[1] + margin) & (p[:, 2] < 0.5 * (lo[2] + hi[2])))
     if inside.sum() < min_count:
         return None
-    zs = np.sort(p[inside, 2])[::-1]
-    for z in zs:
-        near = np.abs(zs - z) <= tol
-        if near.sum() >= min_count:
-            return float(np.median(zs[near]))
-    return None
+    q = p[inside]
+    q = q[np.argsort(-q[:, 2])]
+    centre = 0.5 * (lo[:2] + hi[:2])
+    fallback = None
+    done = np.zeros(len(q), bool)
+    for i in range(len(q)):
+        if done[i]:
+            continue
+        near = np.abs(q[:, 2] - q[i, 2]) <= tol
+        done |= near
+        if near.sum() < min_count:
+            continue
+        z = float(np.median(q[near, 2]))
+        ang = np.sort(np.arctan2(q[near, 1] - centre[1], q[near, 0] - centre[0]))
+        gaps = np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))
+        if gaps.max() <= max_gap:
+            return z
+        if fallback is None and z <= lo[2] + sink:
+            fallback = z
+    return fallback
 
 
 def clip_to_support(mesh, z: float):

@@ -271,8 +271,20 @@ def build_background(mesh, *, views=None, label: str = "background", decimation_
     obj.faces_after, obj.decimation_error = int(len(m.faces)), dec.hausdorff
     obj.decimation_mean_error, obj.decimation_budget = dec.mean_error, dec.budget
     obj.watertight = bool(m.is_watertight)
+    if len(m.faces) > MAX_ATLAS_FACES:
+        # a room-sized mesh: xatlas took 201 s on a 137 k-face room (the demo scene), the colour per
+        # vertex from the views 2.4 s, and the background is context, not an asset
+        from psimap.exporters import texture as T
+
+        obj.mesh = m
+        obj.vertex_rgb = T.vertex_colors_from_views(np.asarray(m.vertices, np.float64), views) if views else None
+        obj.texture_source = "vertex" if obj.vertex_rgb is not None else "none"
+        return obj
     _texture(obj, m, views, None, vertex_rgb, mesh, texel)
     return obj
+
+
+MAX_ATLAS_FACES = 20_000      # above this many faces a mesh is coloured per vertex, not UV-unwrapped
 
 
 def _vertex_rgb(mesh):

@@ -122,6 +122,11 @@ def mass_properties(mesh, label: str, *, densities: dict[str, float] | None = No
     inertia = inertia_unit * density
     inertia = 0.5 * (inertia + inertia.T)
     evals, evecs = np.linalg.eigh(inertia)
+    if not (evals > 0).all():
+        # a closed but self-intersecting surface integrates to an impossible body (MuJoCo and
+        # PhysX reject it, USD validation flags it)
+        raise PsimapError(f"mass properties of '{label}': inertia is not positive definite "
+                          "(self-intersecting surface)")
     if np.linalg.det(evecs) < 0:
         evecs[:, 2] *= -1
     return Physics(mass=mass, com=com, inertia=inertia, principal_inertia=evals,

@@ -198,3 +198,19 @@ def test_support_is_the_highest_surface_under_the_object_not_a_neighbour_top():
     assert support_height(bottle, pts) == pytest.approx(0.75)     # sunk 1 cm into the top: still the top
     on_floor = bottle.copy().apply_translation([0.7, 0.7, -0.74])
     assert support_height(on_floor, pts) == pytest.approx(0.0)
+
+
+def test_self_intersecting_solid_has_no_mass_properties():
+    from psimap import PsimapError
+    from psimap.exporters.physics import mass_properties
+
+    # a closed surface with a net positive volume whose inverted (inside-out) rod reaches far
+    # out: its integrals give negative moments, a body no simulator accepts
+    box = _box([0.1, 0.1, 0.1], [0, 0, 0])
+    rod = _box([1.0, 0.01, 0.01], [0.6, 0, 0])
+    rod.invert()
+    bad = trimesh.util.concatenate([box, rod])
+    assert bad.is_watertight and bad.volume > 0
+    with pytest.raises(PsimapError, match="not positive definite"):
+        mass_properties(bad, "box", density=1000.0)
+    assert (mass_properties(box, "box", density=1000.0).principal_inertia > 0).all()
