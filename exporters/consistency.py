@@ -52,8 +52,9 @@ def _to_trimesh(man):
     import trimesh
 
     m = man.to_mesh()
+    # manifold's output is already indexed: re-merging vertices by distance could pinch it
     out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts),
-                          process=True)
+                          process=False)
     if len(out.faces):
         parts = out.split(only_watertight=True)
         if len(parts) > 1:      # a cut can leave crumbs: the object is its largest piece

@@ -184,6 +184,9 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
         obj.physics.com = np.asarray(obj.collision.transform, np.float64)[:3, 3].copy()
     if views:
         texel = max(texel, view_texel(m, views))
+        if len(views) > MAX_BAKE_VIEWS:
+            # views spread along the trajectory; more only average the same texels again
+            views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, MAX_BAKE_VIEWS).round().astype(int))]
     t0 = time.perf_counter()
     _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
     obj.timings["texture_s"] = time.perf_counter() - t0
@@ -215,7 +218,6 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     does rest there. Objects more than `max_gap` above z are not resting and stay as they are.
     """
     import trimesh
-    from scipy.spatial import Delaunay
 
     v = np.asarray(mesh.vertices, np.float64)
     lo, hi = float(v[:, 2].min()), float(v[:, 2].max())
@@ -225,7 +227,7 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     base = v[v[:, 2] < z + 1e-3, :2]
     if len(base) >= 3:
         try:
-            if Delaunay(base).find_simplex(com[:2][None])[0] >= 0 and np.ptp(base, axis=0).min() > 0.2 * np.ptp(
+            if _in_hull_2d(base, com[:2]) and np.ptp(base, axis=0).min() > 0.2 * np.ptp(
                     v[:, :2], axis=0).min():
                 return mesh, False
         except Exception:       # collinear base points: no area, extend
@@ -235,7 +237,7 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     for frac in (band, 2 * band, 3 * band):
         ring = v[v[:, 2] <= lo + frac * (hi - lo)]
         try:
-            if len(ring) >= 3 and Delaunay(ring[:, :2]).find_simplex(com[:2][None])[0] >= 0:
+            if len(ring) >= 3 and _in_hull_2d(ring[:, :2], com[:2]):
                 break
         except Exception:
             continue
@@ -250,6 +252,22 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     if not out.is_watertight or out.volume <= 0:
         return mesh, False
     return out, True
+
+
+def _in_hull_2d(points: np.ndarray, p: np.ndarray) -> bool:
+    """Whether p [2] lies in the convex hull of points [n, 2] (False for a degenerate hull).
+    (The hull of the unique points: a Delaunay triangulation of every vertex of an extruded
+    footprint repeats each 2D point many times.)"""
+    from scipy.spatial import ConvexHull
+
+    pts = np.unique(np.round(points, 6), axis=0)
+    if len(pts) < 3:
+        return False
+    try:
+        hull = ConvexHull(pts)
+    except Exception:       # collinear: no area
+        return False
+    return bool((hull.equations[:, :2] @ p + hull.equations[:, 2] <= 1e-9).all())
 
 
 def build_background(mesh, *, views=None, label: str = "background", decimation_budget: float | None = None,
@@ -285,6 +303,7 @@ def build_background(mesh, *, views=None, label: str = "background", decimation_
 
 
 MAX_ATLAS_FACES = 20_000      # above this many faces a mesh is coloured per vertex, not UV-unwrapped
+MAX_BAKE_VIEWS = 16           # views a texture is baked from (spread over those that see the object)
 
 
 def _vertex_rgb(mesh):

@@ -142,7 +142,8 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
         solid = solidify(m, float(pitch), support_z, points=points)
         if solid is not None:
             m = solid
-            steps.append(f"closed as a voxel solid ({pitch * 1000:.1f} mm)")
+            steps.append(f"closed as a voxel solid ({pitch * 1000:.1f} mm)" if solid.metadata["solidify"] == "enclosed"
+                         else f"encloses nothing: thickened to a {pitch * 1000:.0f} mm voxel band")
     if not m.is_watertight:
         m2 = m
         for _ in range(3):

@@ -29,7 +29,7 @@ def solid_pitch(mesh, resolution: float | None) -> float:
 
 
 def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndarray | None = None,
-             max_closing: int = 3, max_gap: float = 0.05):
+             max_closing: int = 3, max_gap: float = 0.05, allow_shell: bool = True):
     """Closed trimesh around the solid an open shell `mesh` encloses, or None when it encloses none.
 
     mesh: trimesh (metres, world Z-up). pitch: voxel size (m). support_z: height of the plane the
@@ -37,8 +37,9 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     lowest band; nothing is built below it); ignored when the shell ends more than `max_gap`
     above it. points: [P, 3] more observed surface points of the
     object (e.g. its surfel discs), added to the shell. Gaps are sealed by a morphological closing
-    of 1, 2, ... max_closing voxels, the least that encloses a solid. The result is watertight (a
-    contour of a voxel field).
+    of 1, 2, ... max_closing voxels, the least that encloses a solid. When none encloses anything,
+    the shell's one-voxel band is the solid (allow_shell; else None). The result is watertight (a
+    contour of a voxel field); result.metadata["solidify"] says "enclosed" or "shell".
     """
     import pyvista as pv
     import trimesh
@@ -99,8 +100,13 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
         if int((~outside & ~closed).sum()) >= 0.05 * int(closed.sum()):
             solid = ~outside
             break
-    if solid is None:       # the fill leaks in at every closing: the shell encloses nothing
-        return None
+    kind = "enclosed"
+    if solid is None:
+        # the fill leaks in at every closing: the observed surface encloses nothing (a table top
+        # seen from above, a shelf's boards); its one-voxel band is the thinnest solid it can be
+        if not allow_shell:
+            return None
+        solid, kind = _closing(shell, 1, floor=support_z is not None), "shell"
     # the solid's boundary cells hold the observed surface, which passes on average through their
     # centres: the field is 1 inside, 1/2 on the boundary layer, 0 outside, and its ISO level
     # contour runs just outside the boundary cells' centres (the plain indicator's 0.5 contour
@@ -108,12 +114,16 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     inner = ndimage.binary_erosion(solid, structure=np.ones((3, 3, 3), bool), border_value=0)
     if support_z is not None:       # the floor layer is boundary only towards the sides
         inner[:, :, 0] = ndimage.binary_erosion(solid[:, :, 0], structure=np.ones((3, 3), bool)) & solid[:, :, 1]
-    field = np.pad(0.5 * (solid.astype(np.float32) + inner), 2)
+    if kind == "shell":             # a band has no inside: its cells' outer faces bound it
+        field = np.pad(solid.astype(np.float32), 2)
+    else:
+        field = np.pad(0.5 * (solid.astype(np.float32) + inner), 2)
     field = ndimage.gaussian_filter(field, 0.5)
+    iso = 0.5 if kind == "shell" else ISO
     img = pv.ImageData(dimensions=field.shape, spacing=(pitch,) * 3,
                        origin=tuple(origin + 0.5 * pitch - 2 * pitch))
     img.point_data["occ"] = field.ravel(order="F")
-    surf = img.contour([ISO], scalars="occ").triangulate().clean()
+    surf = img.contour([iso], scalars="occ").triangulate().clean()
     if surf.n_cells == 0:
         return None
     out = trimesh.Trimesh(np.asarray(surf.points, np.float64), np.asarray(surf.faces).reshape(-1, 4)[:, 1:],
@@ -126,7 +136,10 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     out = max(parts, key=lambda p: abs(p.volume))
     if out.volume < 0:
         out.invert()
-    return out if out.is_watertight and out.volume > 0 else None
+    if not (out.is_watertight and out.volume > 0):
+        return None
+    out.metadata["solidify"] = kind
+    return out
 
 
 def _closing(shell: np.ndarray, iterations: int, floor: bool) -> np.ndarray:

@@ -53,8 +53,11 @@ def test_open_ball_cap_is_closed_down_to_the_support():
 
 def test_solidify_degenerate_inputs_give_none():
     plane = trimesh.creation.box(extents=[0.2, 0.2, 0.001])
-    plane = trimesh.Trimesh(plane.vertices, plane.faces[plane.face_normals[:, 2] > 0.9])
-    assert solidify(plane, 0.004) is None                      # a sheet encloses nothing
+    plane = trimesh.Trimesh(plane.vertices, plane.faces[plane.face_normals[:, 2] > 0.9]).subdivide()
+    assert solidify(plane, 0.004, allow_shell=False) is None    # a sheet encloses nothing
+    band = solidify(plane, 0.004)                               # ... but is a one-voxel plate
+    assert band.metadata["solidify"] == "shell" and band.is_watertight
+    assert 0.002 <= band.extents[2] <= 0.012 and band.extents[0] == pytest.approx(0.2, abs=0.01)
     assert solidify(trimesh.Trimesh(), 0.004) is None
     nan = _open_box()
     nan.vertices[0] = np.nan
