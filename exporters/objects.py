@@ -119,7 +119,7 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         from psimap.exporters.solidify import solid_pitch
 
         solid_kw = {"pitch": solid_pitch(m, resolution), "support_z": support,
-                    "points": (context or {}).get("surfel_points")}
+                    "points": (context or {}).get("surfel_points"), "views": (context or {}).get("carve_views")}
     rep = repair_mesh(m, need_volume=True, **solid_kw)
     obj.repair_steps = pre.steps + rep.steps
     if not rep.ok and obj.completed:         # a bad completion must not lose the object
@@ -413,6 +413,7 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
                                   and len(t.mesh.faces)],
                    "cameras": [(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
                    "depths": [v.depth for v in views], "images": [v.rgb for v in views],
+                   "carve_views": inst.views,
                    "surfel_points": disc_points(*(sf[k][members] for k in ("means", "quats", "scales",
                                                                             "opacities")))}
         objs.append(prepare_solid(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,

@@ -29,7 +29,7 @@ def solid_pitch(mesh, resolution: float | None) -> float:
 
 
 def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndarray | None = None,
-             max_closing: int = 3, max_gap: float = 0.05, allow_shell: bool = True):
+             max_closing: int = 3, max_gap: float = 0.05, allow_shell: bool = True, views=None):
     """Closed trimesh around the solid an open shell `mesh` encloses, or None when it encloses none.
 
     mesh: trimesh (metres, world Z-up). pitch: voxel size (m). support_z: height of the plane the
@@ -39,12 +39,10 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     object (e.g. its surfel discs), added to the shell. Gaps are sealed by a morphological closing
     of 1, 2, ... max_closing voxels, the least that encloses a solid. When none encloses anything,
     the shell's one-voxel band is the solid (allow_shell; else None). The result is watertight (a
-    contour of a voxel field); result.metadata["solidify"] says "enclosed" or "shell".
+    contour of a voxel field); result.metadata["solidify"] says "carved", "enclosed" or "shell".
+    views: texture.View list (depth + pose): when given, the solid is first carved from the shell's
+    box by the free space the views saw (`_carve`), the enclosure only when that fails.
     """
-    import pyvista as pv
-    import trimesh
-    from scipy import ndimage
-
     v = np.asarray(mesh.vertices, np.float64)
     if len(v) < 4 or len(mesh.faces) < 4 or not np.isfinite(v).all():
         return None
@@ -72,7 +70,65 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     shell[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     if shell.sum() < 8:
         return None
-    if support_z is not None:
+    solid, kind = None, "enclosed"
+    if views:
+        solid = _carve(shell, origin, pitch, views, pad, floor=support_z is not None)
+        kind = "carved"
+    if solid is None:
+        solid, kind = _enclose(shell, support_z is not None, max_closing, allow_shell)
+    if solid is None:
+        return None
+    return _contour(solid, kind, origin, pitch, None if support_z is None else lo[2])
+
+
+def _carve(shell: np.ndarray, origin: np.ndarray, pitch: float, views, pad: int, floor: bool):
+    """Space carving: the cells of the shell's box that no view sees through, in the connected
+    pieces that hold the shell; None when that is no more than the shell itself.
+
+    A cell is seen through (free) when some view's depth at its centre's pixel lies more than a
+    cell behind it. What no camera saw (the underside on a support, the back against a wall, the
+    inside) stays solid: the object is what the views allow, not a tent over its visible rim.
+    """
+    from scipy import ndimage
+
+    dims = np.array(shell.shape)
+    ii = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"), axis=-1).reshape(-1, 3)
+    centres = origin + (ii + 0.5) * pitch
+    free = np.zeros(len(ii), bool)
+    for v in views:
+        w2c = np.linalg.inv(np.asarray(v.c2w, np.float64))
+        pc = centres @ w2c[:3, :3].T + w2c[:3, 3]
+        z = pc[:, 2]
+        ok = z > 1e-3
+        zs = np.where(ok, z, 1.0)
+        u = np.round(v.K[0, 0] * pc[:, 0] / zs + v.K[0, 2]).astype(np.int64)
+        w = np.round(v.K[1, 1] * pc[:, 1] / zs + v.K[1, 2]).astype(np.int64)
+        H, W = v.depth.shape
+        ok &= (u >= 0) & (u < W) & (w >= 0) & (w < H)
+        d = np.where(ok, v.depth[w.clip(0, H - 1), u.clip(0, W - 1)], 0.0)
+        free |= ok & (d > 0) & (z < d - pitch)
+    solid = ~free.reshape(dims)
+    # only the shell's box (the pad cells around it are outside), the support layer included
+    box = np.zeros(dims, bool)
+    box[pad:-pad, pad:-pad, (0 if floor else pad):-pad] = True
+    solid &= box
+    solid |= shell
+    lab, n = ndimage.label(solid)
+    keep = np.unique(lab[shell])
+    solid = np.isin(lab, keep[keep > 0])
+    if solid.sum() <= 1.2 * shell.sum():        # nothing behind the surface: carving did not help
+        return None
+    return solid
+
+
+def _enclose(shell: np.ndarray, floor: bool, max_closing: int, allow_shell: bool):
+    """(solid, kind): the cells the outside cannot reach after the least closing (1..max_closing)
+    that encloses anything ("enclosed"), else the one-voxel band ("shell", when allowed), else
+    (None, "")."""
+    from scipy import ndimage
+
+    shell = shell.copy()
+    if floor:
         # close the opening on the support under the footprint of the lowest band of the shell
         band = max(2, int(np.ceil(0.5 * shell.shape[2])))
         foot = ndimage.binary_fill_holes(ndimage.binary_closing(shell[:, :, :band].any(axis=2), iterations=2))
@@ -83,43 +139,50 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
         cols = foot & (low > 0) & (low < band)
         zz = np.arange(shell.shape[2])[None, None, :]
         shell |= cols[:, :, None] & (zz < low[:, :, None])
+    dims = shell.shape
     border = np.zeros(dims, bool)
     border[[0, -1], :, :] = True
     border[:, [0, -1], :] = True
     border[:, :, -1] = True
-    if support_z is None:
+    if not floor:
         border[:, :, 0] = True
-    solid = None
     for it in range(1, max_closing + 1):
-        closed = _closing(shell, it, floor=support_z is not None)
+        closed = _closing(shell, it, floor=floor)
         free = ~closed
         # outside = free cells connected to the grid's sides and top (its floor is the support)
         lab, _ = ndimage.label(free)
         outside_labels = np.unique(lab[border & free])
         outside = np.isin(lab, outside_labels[outside_labels > 0])
         if int((~outside & ~closed).sum()) >= 0.05 * int(closed.sum()):
-            solid = ~outside
-            break
-    kind = "enclosed"
-    if solid is None:
-        # the fill leaks in at every closing: the observed surface encloses nothing (a table top
-        # seen from above, a shelf's boards); its one-voxel band is the thinnest solid it can be
-        if not allow_shell:
-            return None
-        solid, kind = _closing(shell, 1, floor=support_z is not None), "shell"
-    # the solid's boundary cells hold the observed surface, which passes on average through their
-    # centres: the field is 1 inside, 1/2 on the boundary layer, 0 outside, and its ISO level
-    # contour runs just outside the boundary cells' centres (the plain indicator's 0.5 contour
-    # runs along their outer faces, half a voxel fat); a one-voxel wall keeps a thin closed skin
-    inner = ndimage.binary_erosion(solid, structure=np.ones((3, 3, 3), bool), border_value=0)
-    if support_z is not None:       # the floor layer is boundary only towards the sides
-        inner[:, :, 0] = ndimage.binary_erosion(solid[:, :, 0], structure=np.ones((3, 3), bool)) & solid[:, :, 1]
-    if kind == "shell":             # a band has no inside: its cells' outer faces bound it
-        field = np.pad(solid.astype(np.float32), 2)
+            return ~outside, "enclosed"
+    # the fill leaks in at every closing: the observed surface encloses nothing (a table top seen
+    # from above, a shelf's boards); its one-voxel band is the thinnest solid it can be
+    if not allow_shell:
+        return None, ""
+    return _closing(shell, 1, floor=floor), "shell"
+
+
+def _contour(solid: np.ndarray, kind: str, origin: np.ndarray, pitch: float, floor_z: float | None):
+    """Watertight trimesh around the True cells of solid [X, Y, Z] (cell centres at
+    origin + (idx + 0.5) * pitch), or None."""
+    import pyvista as pv
+    import trimesh
+    from scipy import ndimage
+
+    if kind == "enclosed":
+        # the boundary cells hold the observed surface, which passes on average through their
+        # centres: the field is 1 inside, 1/2 on the boundary layer, 0 outside, and its ISO level
+        # contour runs just outside the boundary cells' centres (the plain indicator's 0.5 contour
+        # runs along their outer faces, half a voxel fat); a one-voxel wall keeps a thin closed skin
+        inner = ndimage.binary_erosion(solid, structure=np.ones((3, 3, 3), bool), border_value=0)
+        if floor_z is not None:       # the floor layer is boundary only towards the sides
+            inner[:, :, 0] = ndimage.binary_erosion(solid[:, :, 0], structure=np.ones((3, 3), bool)) & solid[:, :, 1]
+        field, iso = np.pad(0.5 * (solid.astype(np.float32) + inner), 2), ISO
     else:
-        field = np.pad(0.5 * (solid.astype(np.float32) + inner), 2)
+        # a band has no inside, and a carved cell is solid up to about its outer face (it is free
+        # once a view sees a cell behind it): the plain indicator's 0.5 contour bounds both
+        field, iso = np.pad(solid.astype(np.float32), 2), 0.5
     field = ndimage.gaussian_filter(field, 0.5)
-    iso = 0.5 if kind == "shell" else ISO
     img = pv.ImageData(dimensions=field.shape, spacing=(pitch,) * 3,
                        origin=tuple(origin + 0.5 * pitch - 2 * pitch))
     img.point_data["occ"] = field.ravel(order="F")
@@ -128,8 +191,8 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
         return None
     out = trimesh.Trimesh(np.asarray(surf.points, np.float64), np.asarray(surf.faces).reshape(-1, 4)[:, 1:],
                           process=True)
-    if support_z is not None:       # the floor contour sits half a cell below the support: clamp
-        out.vertices[:, 2] = np.maximum(out.vertices[:, 2], lo[2])
+    if floor_z is not None:       # the floor contour sits half a cell below the support: clamp
+        out.vertices[:, 2] = np.maximum(out.vertices[:, 2], floor_z)
     parts = out.split(only_watertight=True)
     if len(parts) == 0:
         return None

@@ -217,3 +217,52 @@ def test_self_intersecting_solid_has_no_mass_properties():
     with pytest.raises(PsimapError, match="not positive definite"):
         mass_properties(bad, "box", density=1000.0)
     assert (mass_properties(box, "box", density=1000.0).principal_inertia > 0).all()
+
+
+def _depth_views(meshes, eyes, target, K, w, h):
+    """texture.View list with exact depth maps of `meshes` (open3d ray casting) from `eyes`."""
+    import open3d as o3d
+
+    from psimap.exporters.texture import View
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for m in meshes:
+        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
+                            o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1) @ np.linalg.inv(K).T      # z = 1
+    views = []
+    for eye in eyes:
+        z = np.asarray(target, float) - eye
+        z /= np.linalg.norm(z)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        c2w = np.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, np.cross(z, x), z, eye
+        d = pix @ c2w[:3, :3].T
+        rays = np.concatenate([np.broadcast_to(eye, d.shape), d], 1).astype(np.float32)
+        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(h, w)
+        views.append(View(np.zeros((h, w, 3)), np.where(np.isfinite(t), t, 0).astype(np.float32), K, c2w))
+    return views
+
+
+def test_carving_fills_what_no_view_saw_and_keeps_what_they_saw_through():
+    # an L-shaped block on a floor, fused only where seen: its top and two sides (no bottom, no
+    # back); an enclosure would tent it, carving by the views' free space gives the L back
+    block = trimesh.boolean.union([_box([0.2, 0.06, 0.06], [0, 0, 0.03]), _box([0.06, 0.06, 0.2], [0.07, 0, 0.1])],
+                                  engine="manifold")
+    floor = _box([3, 3, 0.01], [0, 0, -0.005])
+    K = np.array([[60.0, 0, 40], [0, 60.0, 30], [0, 0, 1]])
+    eyes = [np.array([0.8 * np.cos(a), 0.8 * np.sin(a), 0.5]) for a in np.linspace(0, np.pi, 6)]
+    views = _depth_views([block, floor], eyes, [0, 0, 0.06], K, 80, 60)
+    fine = block.subdivide().subdivide().subdivide()
+    c, n = fine.triangles_center, fine.face_normals
+    seen = (n[:, 1] >= -0.1) & (c[:, 2] > 1e-6)          # the back (-y) and the bottom were never seen
+    shell = trimesh.Trimesh(fine.vertices, fine.faces[seen], process=True)
+    pitch = solid_pitch(shell, 0.005)
+    carved = solidify(shell, pitch, support_z=0.0, views=views)
+    assert carved is not None and carved.metadata["solidify"] == "carved" and carved.is_watertight
+    assert abs(carved.volume - block.volume) < 0.2 * block.volume
+    # the notch of the L, seen through from the front, stays free
+    assert not carved.contains([[-0.05, 0.0, 0.15]])[0]
+    assert carved.contains([[-0.05, 0.0, 0.03], [0.07, 0.0, 0.15]]).all()
