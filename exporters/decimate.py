@@ -1,6 +1,7 @@
 """Step 4: decimation to an error budget.
 
-fast-simplification (quadric edge collapse) proposes meshes of decreasing face count; each one is
+fast-simplification (quadric edge collapse; MeshLab's topology-preserving collapse when it breaks a
+closed mesh) proposes meshes of decreasing face count; each one is
 measured against the pre-decimation mesh (symmetric Hausdorff distance and mean distance on surface
 samples, exact point-to-triangle distances by Open3D's RaycastingScene) and the smallest face count
 whose error stays within the budget (and which stays watertight when the input was) is kept.
@@ -67,13 +68,17 @@ def _dist_to(mesh, points: np.ndarray) -> np.ndarray:
     return d.numpy().astype(np.float64)
 
 
-def simplify_to_count(mesh, faces: int):
-    """Quadric decimation to about `faces` faces (trimesh in, trimesh out)."""
+def simplify_to_count(mesh, faces: int, method: str = "auto"):
+    """Quadric decimation to about `faces` faces (trimesh in, trimesh out). method: "fast"
+    (fast-simplification only), "meshlab" (topology-preserving MeshLab collapse only) or "auto"
+    (fast, MeshLab when fast breaks a closed mesh)."""
     import fast_simplification
     import trimesh
 
     from psimap.exporters.repair import drop_slivers
 
+    if method == "meshlab":
+        return _meshlab_simplify(mesh, faces)
     # open meshes (background) keep their border: collapsing it pulls the rim inwards by cm
     v, f = fast_simplification.simplify(np.asarray(mesh.vertices, np.float64),
                                         np.asarray(mesh.faces, np.int32), target_count=int(faces),
@@ -81,8 +86,29 @@ def simplify_to_count(mesh, faces: int):
     out = trimesh.Trimesh(v, f, process=True)
     if out.is_watertight and len(out.split(only_watertight=False)) == 1:
         return out
+    if mesh.is_watertight and method == "auto":
+        # fast-simplification collapses across thin (one-voxel) parts of voxel solids and leaves
+        # edges shared by four faces (a carved box: 110 pieces at 2000 faces); MeshLab's quadric
+        # collapse with topology preservation keeps it one closed surface
+        alt = _meshlab_simplify(mesh, faces)
+        if alt.is_watertight and len(alt.split(only_watertight=False)) == 1:
+            return alt
     # edge collapses can pinch off tiny closed 2-face pockets: drop them, keep the real surface
     return drop_slivers(out)
+
+
+def _meshlab_simplify(mesh, faces: int):
+    import pymeshlab
+    import trimesh
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int32)))
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(faces), preservetopology=True,
+                                                preservenormal=True, qualitythr=0.3)
+    o = ms.current_mesh()
+    out = trimesh.Trimesh(o.vertex_matrix(), o.face_matrix(), process=True)
+    out.metadata["meshlab"] = True
+    return out
 
 
 def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32,
@@ -102,8 +128,15 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
     ref_pts = _sample(mesh, samples, seed)
     curve = []
 
+    method = "auto"
+
     def measure(count):
-        cand = simplify_to_count(mesh, count)
+        nonlocal method
+        cand = simplify_to_count(mesh, count, method)
+        if method == "auto" and watertight:
+            # one answer per mesh: fast-simplification either keeps this mesh closed or it does not
+            fast_ok = cand.is_watertight and cand.vertices.shape[0] > 0 and not cand.metadata.get("meshlab")
+            method = "fast" if fast_ok else "meshlab"
         if len(cand.faces) == 0 or (watertight and not cand.is_watertight):
             return cand, np.inf, np.inf
         d1 = _dist_to(cand, ref_pts)

@@ -181,7 +181,7 @@ def _contour(solid: np.ndarray, kind: str, origin: np.ndarray, pitch: float, flo
     else:
         # a band has no inside, and a carved cell is solid up to about its outer face (it is free
         # once a view sees a cell behind it): the plain indicator's 0.5 contour bounds both
-        field, iso = np.pad(solid.astype(np.float32), 2), 0.5
+        field, iso = np.pad(solid.astype(np.float32), 2), 0.45
     field = ndimage.gaussian_filter(field, 0.5)
     img = pv.ImageData(dimensions=field.shape, spacing=(pitch,) * 3,
                        origin=tuple(origin + 0.5 * pitch - 2 * pitch))

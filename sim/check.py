@@ -79,8 +79,20 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
         if min_dist >= -max_penetration:
             break
         free = set(_free_bodies(model))
-        # lift the lowest-penetrating body first: lifting a support lifts what rests on it next round
-        movable = {b: d for b, d in per_body.items() if b in free and d > max_penetration}
+        # per penetrating contact, lift the body on top (the higher centre of mass) out of the one
+        # under it, never the support: lifting a table out of the cup on it drops the table
+        movable: dict[int, float] = {}
+        for i in range(data.ncon):
+            c = data.contact[i]
+            depth = -float(c.dist)
+            if depth <= max_penetration:
+                continue
+            b1, b2 = int(model.geom_bodyid[c.geom1]), int(model.geom_bodyid[c.geom2])
+            cands = [b for b in (b1, b2) if b in free]
+            if not cands:
+                continue
+            top = max(cands, key=lambda b: float(data.xipos[b][2])) if len(cands) == 2 else cands[0]
+            movable[top] = max(movable.get(top, 0.0), depth)
         if not movable:
             break
         for b, depth in movable.items():
