@@ -278,3 +278,24 @@ def test_small_sphere_label_matches_its_projected_disc(radius_px, min_iou):
     assert np.abs(np.argwhere(ball).mean(0) - np.argwhere(disc).mean(0)).max() < 0.35
     with pytest.raises(PsimapError, match="supersample"):
         render_labels(sc, k, np.eye(4), w, h, supersample=0)
+
+
+def test_instance_pixels_take_the_instance_class(scene):
+    """Surfels of one instance with mixed classes (a noisy semantic head): every pixel of that
+    instance gets the instance's majority class, so no (class, instance) segment is split."""
+    import torch
+
+    from psimap.panoptic.labels import render_labels
+    from psimap.scene import Scene
+
+    s = dict(scene.surfels)
+    sem = s["semantic_id"].clone()
+    box1 = torch.nonzero(s["instance_id"] == 1).flatten()
+    sem[box1[::4]] = 3                                   # a quarter of box 1 says "lamp"
+    s["semantic_id"] = sem
+    noisy = Scene(s, classes=scene.classes, cameras=scene.cameras)
+    for i in range(4):
+        Kc, c2w, w, h = scene.camera(i)
+        inst, sem_map = render_labels(noisy, Kc, c2w, w, h)
+        assert (inst == 1).sum() > 10
+        assert (sem_map[inst == 1] == 2).all() and not (sem_map == 3).any()

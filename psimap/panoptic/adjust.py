@@ -54,3 +54,28 @@ def useless_queries(matched: torch.Tensor, visible: torch.Tensor, min_rate: floa
     visible = visible.float()
     rate = matched / visible.clamp_min(1.0)
     return ((visible >= min_visible) & (rate < min_rate)) | ((visible >= min_visible) & (matched == 0))
+
+
+def co_mask_duplicates(same: torch.Tensor, apart: torch.Tensor, support: torch.Tensor,
+                       min_frames: int = 3) -> torch.Tensor:
+    """Queries to drop as pieces of one object split between queries: [Q] bool.
+
+    same / apart [Q, Q]: frames in which both queries were seen with their rendered pixels inside
+    the same 2D mask / inside two different masks; support [Q]: how often each was matched. Two
+    queries that share a mask more often than not (and in at least `min_frames` frames) draw one
+    object; the less supported one is dropped. This sees splits that the 3D IoM cannot: once two
+    queries have each won their part of an object, their 3D masks no longer overlap.
+    """
+    q = same.shape[0]
+    drop = torch.zeros(q, dtype=torch.bool)
+    if q < 2:
+        return drop
+    together = (same > apart) & (same >= min_frames)
+    together.fill_diagonal_(False)
+    order = torch.argsort(support, stable=True)          # least supported first
+    for rank, i in enumerate(order.tolist()):
+        stronger = order[rank + 1:]
+        stronger = stronger[~drop[stronger]]
+        if stronger.numel() and bool(together[i, stronger].any()):
+            drop[i] = True
+    return drop

@@ -16,7 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from psimap import PsimapError
-from psimap.panoptic.adjust import duplicate_queries, useless_queries
+from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, useless_queries
 from psimap.panoptic.matching import hungarian_match, masks_from_ids, matched_mask_loss
 from psimap.panoptic.queries import InstanceQueries, init_from_points
 
@@ -142,7 +142,9 @@ class PanopticField(nn.Module):
         self.queries = queries
         self.matched = torch.zeros(queries.count)
         self.visible = torch.zeros(queries.count)
-        self.fragment = torch.zeros(queries.count)     # frames where it drew part of another's object
+        # [Q, Q] frames where two queries drew inside one 2D mask / inside two different masks
+        self.same = torch.zeros(queries.count, queries.count)
+        self.apart = torch.zeros(queries.count, queries.count)
         self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
         self.steps = 0
         self._pending: list[torch.Tensor] = []        # point sets of masks no query covers
@@ -183,7 +185,8 @@ class PanopticField(nn.Module):
         a = len(groups)
         self.matched = torch.cat([self.matched, torch.zeros(a)])
         self.visible = torch.cat([self.visible, torch.zeros(a)])
-        self.fragment = torch.cat([self.fragment, torch.zeros(a)])
+        self.same = F.pad(self.same, (0, a, 0, a))
+        self.apart = F.pad(self.apart, (0, a, 0, a))
         self.born = torch.cat([self.born, torch.full((a,), float(self.steps))])
         self._make_optimizers()
 
@@ -288,17 +291,16 @@ class PanopticField(nn.Module):
                 l_ins = matched_mask_loss(prob, target, match)
                 self.matched[match.query_idx] += 1
                 with torch.no_grad():
-                    # A free query that draws mostly inside a mask matched to another query is a
-                    # fragment of that query's object (two queries that split one object: each
-                    # wins its part, their 3D masks no longer overlap and IoM never sees it).
-                    busy = torch.zeros(hw, dtype=torch.bool)
-                    if match.mask_idx.numel():
-                        busy = masks[match.mask_idx].reshape(match.mask_idx.numel(), -1).any(0)
-                    free = seen.clone()
-                    free[match.query_idx] = False
-                    if bool(free.any()):
-                        inside = (owned[:, free] & busy[:, None]).sum(0) / owned[:, free].sum(0).clamp_min(1)
-                        self.fragment[free] += (inside > self.cfg.iom_threshold).float()
+                    # The 2D mask holding most (> iom_threshold) of each seen query's pixels; pairs
+                    # of queries in one mask vs in different masks (see co_mask_duplicates).
+                    own_f = owned.float()
+                    inside = masks.reshape(masks.shape[0], -1).float() @ own_f / own_f.sum(0).clamp_min(1)
+                    best, host = inside.max(0)
+                    host = torch.where(seen & (best > cfg.iom_threshold), host, torch.full_like(host, -1))
+                    both = (host >= 0)[:, None] & (host >= 0)[None, :]
+                    eq = host[:, None] == host[None, :]
+                    self.same += (both & eq).float()
+                    self.apart += (both & ~eq).float()
                 if cfg.spawn and depth is not None:
                     self._queue_uncovered(masks, match, img[:, :q].detach(), depth, K, w2c)
                 info["matched"] = int(match.query_idx.numel())
@@ -346,7 +348,7 @@ class PanopticField(nn.Module):
         # anywhere (visible stays 0, so the rate test above cannot see it) yet would own surfels
         # by argmax at export
         useless |= (self.matched == 0) & old_enough
-        fragment = (self.fragment >= 0.5 * self.visible) & (self.visible >= 3) & old_enough
+        fragment = co_mask_duplicates(self.same, self.apart, self.matched) & old_enough
         empty = (masks.sum(0) == 0) & old_enough                                     # covers nothing
         drop = dup | useless | empty | fragment
         # which rule fired (a query may break several): read by the log and the benchmark
@@ -362,7 +364,8 @@ class PanopticField(nn.Module):
             self.queries.keep(keep)
             self.matched = self.matched[keep]
             self.visible = self.visible[keep]
-            self.fragment = self.fragment[keep]
+            self.same = self.same[keep][:, keep]
+            self.apart = self.apart[keep][:, keep]
             self.born = self.born[keep]
             self._make_optimizers()
         return removed

@@ -109,7 +109,8 @@ def render_labels(scene, K, c2w, width: int, height: int, topk: int | None = Non
 
     K [3, 3], c2w [4, 4] OpenCV camera-to-world. Ids are the scene's hard labels
     (`Scene.instance_ids()`, `Scene.semantic_ids()`); 0 where nothing covers the pixel
-    (alpha <= 0.5) or the covering surfels carry no label. topk: blend the one-hot labels over the
+    (alpha <= 0.5) or the covering surfels carry no label. A pixel of an instance takes the
+    instance's class (majority vote of its surfels, `instance_classes`). topk: blend the one-hot labels over the
     K largest weights per pixel (None = all). supersample: samples per pixel side (None =
     DEFAULT_SUPERSAMPLE; 1 = one sample per pixel, ss^2 times cheaper, silhouettes ~1 px wider).
     """
@@ -135,6 +136,15 @@ def render_labels(scene, K, c2w, width: int, height: int, topk: int | None = Non
     else:
         ss = int(supersample)
     (inst, sem), alpha = _argmax_ids(scene, [inst_ids, sem_ids], viewmat, Kt, width, height, topk, backend, ss)
+    # One class per instance, as a COCO segment has: a pixel whose instance and class channels
+    # were won by different surfels (a bottle's limb over the table) would otherwise form a
+    # (table, bottle id) segment, a false positive of its own.
+    votes = instance_classes(scene)
+    if votes:
+        lut = np.zeros(int(max(votes)) + 1, dtype=np.int64)
+        lut[list(votes)] = list(votes.values())
+        voted = lut[np.clip(inst, 0, len(lut) - 1)]
+        sem = np.where((inst > 0) & (inst < len(lut)) & (voted > 0), voted, sem)
     covered = alpha > MIN_ALPHA
     return np.where(covered, inst, 0), np.where(covered, sem, 0)
 
