@@ -155,6 +155,7 @@ def main() -> None:
     from psimap.data import load
     from psimap.data.synthetic import generate
     from psimap.panoptic.field import PanopticConfig
+    from psimap.panoptic.labels import DEFAULT_SUPERSAMPLE
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one seed, 16 frames 96x72, noise 15 %% only, "
@@ -180,6 +181,7 @@ def main() -> None:
         k, v = kv.split("=", 1)
         over[k] = {"int": int, "float": float, "str": str}.get(types[k], float)(v)
     cfg = PanopticConfig(**over)
+    load0 = _load()
     torch.set_num_threads(max(1, torch.get_num_threads()))
     rows, topk_rows = [], []
     per_method = {}
@@ -225,7 +227,9 @@ def main() -> None:
              f"{args.iters}, PanopticConfig overrides {over or 'none'}; geometry = GT surfels "
              f"(scene_from_meshes). 'queries' = final query count (baseline: merged 3D segments), "
              f"'instances' = instance ids on surfels after export, 'objects' = GT objects seen by a frame. "
-             f"Oracle = GT surfel labels rendered the same way. Times are wall seconds on a shared CPU.")
+             f"Oracle = GT surfel labels rendered the same way. Labels rendered at {DEFAULT_SUPERSAMPLE}x"
+             f"{DEFAULT_SUPERSAMPLE} samples per pixel (psimap.panoptic.labels). Times are wall seconds "
+             f"on a CPU shared with other jobs (load average at start / end: {load0} / {_load()}).")
     if topk_rows:
         OUT_DIR.mkdir(exist_ok=True)
         plot_topk(topk_rows, OUT_DIR / "panoptic_topk.png")
@@ -241,6 +245,12 @@ def main() -> None:
                        markdown_table(["K", "scene PQ", "render s/frame", "mIoU"], topk_rows),
                        "Plot: bench_out/panoptic_topk.png. One-hot hard labels blended over the K largest "
                        "weights per pixel (instance and class channels in one pass).", cmd)
+
+
+def _load() -> str:
+    import os
+
+    return " ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
 HEADER = ["seed", "noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "queries",
