@@ -404,8 +404,11 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
         views = views_of[item.instance_id] = inst.views_for(item.instance_id)
         members = item.members if item.members is not None else iid == item.instance_id
         support = item.support_z
-        if support is None and floor_z is not None and float(item.mesh.bounds[0, 2]) < floor_z + 0.05:
-            support = floor_z           # no stuff surfels under it, but it stands at floor level
+        if floor_z is not None and (support is None and float(item.mesh.bounds[0, 2]) < floor_z + 0.05
+                                    or support is not None and abs(support - floor_z) < 0.03):
+            # it stands on the floor: on the floor plane the scene is exported with (the surfels
+            # under one object and the background's dominant plane differ by a centimetre)
+            support = floor_z
         context = {"background": inst.background, "voxel_size": inst.voxel_size,
                    "support_z": support,
                    "support_planes": [] if support is None else [((0.0, 0.0, 1.0), support)],
