@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from psimap.panoptic.adjust import duplicate_queries, iom_matrix, useless_queries
+from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, iom_matrix, useless_queries
 from psimap.panoptic.coco import STUFF_OFFSET, decode_rgb, encode_rgb, write_coco_panoptic
 from psimap.panoptic.matching import hungarian_match, masks_from_ids, matched_mask_loss
 from psimap.panoptic.queries import InstanceQueries, init_from_points
@@ -162,3 +162,51 @@ def test_uncovered_mask_spawns_a_query_and_covered_one_does_not():
     field.losses(*args, depth=torch.ones(h, w))
     field.step()
     assert field.queries.count == 2
+
+
+def test_co_mask_duplicates_drop_the_weaker_piece_of_a_split_object():
+    # queries 0 and 1 split one object (drawn inside the same 2D mask in 6 frames, apart in 1);
+    # 2 is a bottle on that object, merged with it by the 2D model in 2 frames, apart in 8
+    same = torch.zeros(3, 3)
+    apart = torch.zeros(3, 3)
+    same[0, 1] = same[1, 0] = 6
+    apart[0, 1] = apart[1, 0] = 1
+    same[0, 2] = same[2, 0] = 2
+    apart[0, 2] = apart[2, 0] = 8
+    matched = torch.tensor([20.0, 5.0, 3.0])
+    assert co_mask_duplicates(same, apart, matched).tolist() == [False, True, False]
+    # the better supported piece is kept whichever index it has
+    assert co_mask_duplicates(same, apart, torch.tensor([5.0, 20.0, 3.0])).tolist() == [True, False, False]
+    # too few shared frames is no evidence; one query alone is never a duplicate
+    assert not co_mask_duplicates(same.clamp_max(2), apart, matched).any()
+    assert not co_mask_duplicates(torch.zeros(1, 1), torch.zeros(1, 1), torch.ones(1)).any()
+
+
+def test_seen_counts_only_frames_where_the_query_owns_pixels():
+    """Every query keeps a little softmax mass on every pixel; it is "seen" only where it owns
+    (p > 0.5) a mask-sized region, so a query of an object out of view is not counted."""
+    from types import SimpleNamespace
+
+    from psimap.data.frames import ClassInfo
+    from psimap.panoptic.field import PanopticConfig, PanopticField
+
+    h, w = 12, 16
+    K = torch.tensor([[10.0, 0, 8], [0, 10.0, 6], [0, 0, 1]])
+    feat, mean, cov = init_from_points([torch.randn(30, 3) * 0.05, torch.randn(30, 3) * 0.05 + 5.0], 4)
+    field = PanopticField(5, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov),
+                          PanopticConfig(feat_dim=4, spawn=False))
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[3:9, 4:12] = 7
+
+    def render(idx, feats, topk):   # query 0 owns the box; query 1 has 0.1 everywhere
+        img = torch.zeros(h, w, feats.shape[1])
+        img[..., 0] = 0.05
+        img[3:9, 4:12, 0] = 0.9
+        img[..., 1] = 0.1
+        return SimpleNamespace(features=img + feats.sum() * 0, alpha=torch.ones(h, w))
+
+    for _ in range(3):
+        field.losses(render, torch.zeros(5, 3), torch.arange(5), inst, torch.where(inst > 0, 1, 0),
+                     K, torch.eye(4), w, h)
+    assert field.visible.tolist() == [3.0, 0.0]
+    assert field.matched.tolist() == [3.0, 0.0]
