@@ -4,7 +4,10 @@ Useless: matched to a 2D mask in too small a fraction of the frames where the qu
 (noisy masks create queries that nothing supports). Duplicate: a query whose 3D mask lies mostly
 inside a larger query's mask, measured by intersection over mask IoM_ij = |M_i & M_j| / |M_i|.
 3D masks use the un-normalised affinity A(q, g) > threshold, so masks of different queries can
-overlap (an argmax partition never would, and IoM would always be 0).
+overlap (an argmax partition never would, and IoM would always be 0). Co-mask duplicate: two
+queries that have each won a part of one object (their 3D masks no longer overlap) but are drawn
+inside the same 2D mask in most frames that see both. "Visible" means the query owns (p > 0.5) at
+least a small mask in the frame; the field logs how many queries each rule drops.
 """
 from __future__ import annotations
 
