@@ -43,6 +43,7 @@ class SceneObject:
     skipped: str = ""                       # reason the object is not exported ("" = exported)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
     timings: dict = field(default_factory=dict, repr=False)   # seconds per asset step
+    solid_pitch: float = 0.0                # voxel (m) of the solid it was closed as (0: not voxelised)
 
     @property
     def name(self) -> str:
@@ -131,6 +132,9 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         obj.skipped = f"repair: {rep.reason}"
         return obj
     m = rep.mesh
+    if "solidify" in getattr(m, "metadata", {}):
+        # a voxel solid is known to one voxel: decimation need not keep its staircase finer
+        obj.solid_pitch = float(solid_kw["pitch"])
     if support is not None:
         m, grew = rest_on_support(m, float(support))
         if grew:
@@ -156,7 +160,7 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     vertex_rgb = _vertex_rgb(mesh)
     obj.source = None
     if decimation_budget is None:
-        decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0)
+        decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0, obj.solid_pitch)
     if collision_tolerance is None:
         collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
     t0 = time.perf_counter()

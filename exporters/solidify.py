@@ -40,8 +40,8 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     of 1, 2, ... max_closing voxels, the least that encloses a solid. When none encloses anything,
     the shell's one-voxel band is the solid (allow_shell; else None). The result is watertight (a
     contour of a voxel field); result.metadata["solidify"] says "carved", "enclosed" or "shell".
-    views: texture.View list (depth + pose): when given, the solid is first carved from the shell's
-    box by the free space the views saw (`_carve`), the enclosure only when that fails.
+    views: texture.View list (depth + pose): when the shell encloses nothing, the solid is carved
+    from the shell's box by the free space the views saw (`_carve`) before the band is used.
     """
     v = np.asarray(mesh.vertices, np.float64)
     if len(v) < 4 or len(mesh.faces) < 4 or not np.isfinite(v).all():
@@ -70,10 +70,12 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     shell[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     if shell.sum() < 8:
         return None
-    solid, kind = None, "enclosed"
-    if views:
-        solid = _carve(shell, origin, pitch, views, pad, floor=support_z is not None)
-        kind = "carved"
+    # a shell that encloses a solid (the support closing its opening) needs no views; one that
+    # encloses nothing (a table top seen from above, a cabinet's open back) is carved from the
+    # views' free space, and only without views thickened to its band
+    solid, kind = _enclose(shell, support_z is not None, max_closing, allow_shell=False)
+    if solid is None and views:
+        solid, kind = _carve(shell, origin, pitch, views, pad, floor=support_z is not None), "carved"
     if solid is None:
         solid, kind = _enclose(shell, support_z is not None, max_closing, allow_shell)
     if solid is None:
