@@ -11,6 +11,8 @@ before decimation and colliders:
   with under `min_keep` of its volume was inside the other and is skipped;
 - room-sized instances: an "object" wider than `max_extent` is not an object a robot moves (a
   merged label of many things, or furniture fused with the room) and is skipped with the reason.
+Then, while the objects are finished biggest first, each solid is cut by the colliders of the
+bigger ones already finished (`cut_by_colliders`): convex hulls span hollows their meshes leave.
 Every change is recorded in the object's repair steps and so in report.json.
 """
 from __future__ import annotations
@@ -118,3 +120,30 @@ def _apply_cut(obj, cut, min_keep: float, step: str, swallowed: str) -> None:
 def _boxes_overlap(b1, b2, pad: float = 0.0) -> bool:
     b1, b2 = np.asarray(b1), np.asarray(b2)
     return bool(np.all(b1[0] - pad <= b2[1]) and np.all(b2[0] - pad <= b1[1]))
+
+
+def cut_by_colliders(obj, finished) -> None:
+    """Cut the prepared solid `obj` by the colliders of the already finished (bigger) objects
+    whose boxes it overlaps: the simulation sees convex hulls, and a hull spans the hollows of its
+    mesh (a cabinet's hull covers the dent a box on it left), so a solid that clears the other's
+    mesh can still start centimetres inside its collider."""
+    import manifold3d
+
+    if obj.skipped:
+        return
+    for other in finished:
+        if other.skipped or other.collision is None or not _boxes_overlap(other.mesh.bounds, obj.mesh.bounds,
+                                                                          pad=0.01):
+            continue
+        hulls = [_solid(p) for p in other.collision.parts if len(p.faces) >= 4]
+        if not hulls:
+            continue
+        union = manifold3d.Manifold.batch_boolean(hulls, manifold3d.OpType.Add) if len(hulls) > 1 else hulls[0]
+        a = _solid(obj.mesh)
+        shared = float((a ^ union).volume())
+        if shared < MIN_OVERLAP:
+            continue
+        _apply_cut(obj, _to_trimesh(a - union), MIN_KEEP,
+                   f"cut by the collider of {other.name} ({shared * 1e6:.1f} cm3)", f"inside the collider of {other.name}")
+        if obj.skipped:
+            return

@@ -113,7 +113,7 @@ def _meshlab_simplify(mesh, faces: int):
 
 def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32,
                        samples: int = DEFAULT_SAMPLES, seed: int = 0,
-                       max_iters: int = 10) -> DecimationResult:
+                       max_iters: int = 7) -> DecimationResult:
     """Fewest faces whose symmetric Hausdorff distance to `mesh` is <= budget (metres).
 
     mesh: trimesh.Trimesh. A watertight input stays watertight (candidates that lose it are

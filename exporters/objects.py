@@ -388,7 +388,7 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
     import trimesh
     from tqdm import tqdm
 
-    from psimap.exporters.consistency import floor_from_background, make_consistent
+    from psimap.exporters.consistency import cut_by_colliders, floor_from_background, make_consistent
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.solidify import disc_points
 
@@ -431,8 +431,15 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
     t0 = time.perf_counter()
     make_consistent(objs, floor_z)
     timings["consistency_s"] = time.perf_counter() - t0
-    for o in tqdm(objs, desc="object assets", disable=not progress, leave=False):
+    # biggest first: each smaller solid is cut by the colliders already made around it
+    finished = []
+    order = sorted((o for o in objs if not o.skipped), key=lambda o: (-float(o.mesh.volume), o.instance_id))
+    for o in tqdm(order, desc="object assets", disable=not progress, leave=False):
+        t0 = time.perf_counter()
+        cut_by_colliders(o, finished)
+        timings["consistency_s"] += time.perf_counter() - t0
         finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed, **kw)
+        finished.append(o)
     background = inst.background
     # labels too big to be objects stay in the scene as static background (what they covered is
     # still there to see)

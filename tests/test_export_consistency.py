@@ -266,3 +266,23 @@ def test_carving_fills_what_no_view_saw_and_keeps_what_they_saw_through():
     # the notch of the L, seen through from the front, stays free
     assert not carved.contains([[-0.05, 0.0, 0.15]])[0]
     assert carved.contains([[-0.05, 0.0, 0.03], [0.07, 0.0, 0.15]]).all()
+
+
+def test_small_solid_is_cut_by_the_bigger_objects_collider():
+    from psimap.exporters.collision import Collision
+    from psimap.exporters.consistency import cut_by_colliders
+
+    # a U-shaped cradle whose convex hull fills its hollow, and a ball resting in the hollow
+    base = _box([0.3, 0.1, 0.05], [0, 0, 0.025])
+    cradle = trimesh.boolean.union([base, _box([0.05, 0.1, 0.15], [-0.125, 0, 0.075]),
+                                    _box([0.05, 0.1, 0.15], [0.125, 0, 0.075])], engine="manifold")
+    big = _obj(cradle, 1, "cradle")
+    big.collision = Collision("hull", 0.1, 0.01, parts=[cradle.convex_hull])
+    ball = _obj(trimesh.creation.icosphere(3, radius=0.04).apply_translation([0, 0, 0.17]), 2, "ball")
+    inside = _obj(trimesh.creation.icosphere(2, radius=0.03).apply_translation([0, 0, 0.09]), 3, "ball")
+    cut_by_colliders(ball, [big])
+    cut_by_colliders(inside, [big])
+    assert not ball.skipped and ball.mesh.is_watertight
+    assert ball.mesh.bounds[0, 2] == pytest.approx(0.15, abs=1e-4)      # on the hull's top, not in it
+    assert any("cut by the collider of cradle_1" in s for s in ball.repair_steps)
+    assert inside.skipped.startswith("inside the collider of cradle_1")  # wholly in the cradle's hull
