@@ -75,7 +75,7 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
         model = _load(path) if not nudges else _model_from_tree(tree, path)
         data = mujoco.MjData(model)
         mujoco.mj_forward(model, data)
-        min_dist, per_body, _ = _penetrations(model, data)
+        min_dist, _, _ = _penetrations(model, data)
         if min_dist >= -max_penetration:
             break
         free = set(_free_bodies(model))
