@@ -150,7 +150,8 @@ def collider_table(tmp: Path):
                                       coacd_thresholds=())
             coll = Collision("hull", coll.error, coll.tolerance, parts=[hull])
         else:
-            coll = collision_geometry(base.mesh, 1e-4, allow_primitives=False, max_hulls=hulls, time_budget=60.0)
+            coll = collision_geometry(base.mesh, 1e-4, allow_primitives=False, max_hulls=hulls,
+                                      time_budget=60.0)
         dt = time.perf_counter() - t
         base.collision = coll
         r = export_scene([base], tmp / f"col{title.replace(' ', '_')}", "mjcf")

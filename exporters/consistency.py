@@ -143,7 +143,7 @@ def cut_by_colliders(obj, finished) -> None:
         shared = float((a ^ union).volume())
         if shared < MIN_OVERLAP:
             continue
-        _apply_cut(obj, _to_trimesh(a - union), MIN_KEEP,
-                   f"cut by the collider of {other.name} ({shared * 1e6:.1f} cm3)", f"inside the collider of {other.name}")
+        _apply_cut(obj, _to_trimesh(a - union), MIN_KEEP, f"cut by the collider of {other.name} "
+                   f"({shared * 1e6:.1f} cm3)", f"inside the collider of {other.name}")
         if obj.skipped:
             return

@@ -5,8 +5,9 @@ TSDF leaves small tunnels and gaps. Hole filling by ear cutting (pymeshlab) tent
 the interior (a fused box came out at 46 % of its hull volume) and every collider after it needs a
 convex decomposition. Here the shell is voxelised, the support plane closes the opening under the
 object's footprint, one morphological closing seals gaps of up to two voxels, and everything the
-outside cannot reach is solid. Its contour (marching cubes, VTK via pyvista) lies within half a
-voxel of the shell. (Snapping the contour back onto the shell was tried: the snapped vertices fold
+outside cannot reach is solid. A shell that encloses nothing (a table top seen only from above, a
+cabinet's unseen back) is carved instead: the cells of its box that no view saw through are solid.
+The contour (marching cubes, VTK via pyvista) lies within about half a voxel of the shell. (Snapping the contour back onto the shell was tried: the snapped vertices fold
 and no decimation of the result stays watertight.)
 """
 from __future__ import annotations

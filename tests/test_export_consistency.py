@@ -159,8 +159,11 @@ def test_failed_check_gives_nonzero_exit_with_report(tmp_path, monkeypatch, caps
     ground = build_object(_box([0.1, 0.1, 0.1], [1, 0, 0.05]), "box", 2, completion="none")  # on the floor
     monkeypatch.setattr(psimap, "load", lambda path: "scene")
     real = pipeline.export_scene
-    monkeypatch.setattr(pipeline, "export_scene", lambda scene, out, fmt, **kw: real([box, ground], out, fmt,
-                                                                                   check=kw["check"]))
+
+    def export_objects(scene, out, fmt, **kw):     # the objects above instead of a checkpoint's
+        return real([box, ground], out, fmt, check=kw["check"])
+
+    monkeypatch.setattr(pipeline, "export_scene", export_objects)
     opts = SimpleNamespace(ckpt="x.ckpt", out=str(tmp_path / "out"), format="mjcf", completion="none",
                            no_check=False, densities="")
     assert cli_export(opts) == 2
