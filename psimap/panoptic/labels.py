@@ -11,7 +11,7 @@ the filter, not by the geometry; so is every surfel seen edge-on at an object's 
 size. A front object bleeds ~1 px over what lies behind it, which is most of a 5 px object's
 mask (GT-surfel oracle at 160x120: ball IoU 0.42, mug 0.44, scene PQ 0.669). Labels are therefore
 rendered with ss x ss samples per pixel and the one-hot weights box-filtered back to the pixel:
-the filter's bleed shrinks to 1/ss px (oracle PQ 0.865 at ss = 2).
+the filter's bleed shrinks to 1/ss px (oracle PQ 0.870 at ss = 2).
 """
 from __future__ import annotations
 
@@ -27,8 +27,9 @@ from psimap import PsimapError
 CHANNELS_PER_PASS = 64
 MIN_ALPHA = 0.5
 # Samples per pixel side of label rendering. The filter's bleed scales as 1/ss; measured on the
-# GT-surfel oracle (benchmarks/panoptic.py, 160x120, seed 0): scene PQ 0.669 / 0.865 / 0.883 / 0.891
-# at ss = 1 / 2 / 3 / 4 for 1 / 2.3 / 6.7 / 8.1x the rendering time; 2 takes most of the gain.
+# GT-surfel oracle (`benchmarks/panoptic.py --oracle-sweep`, 160x120, seed 0; RESULTS.md): scene PQ
+# 0.678 / 0.870 / 0.889 / 0.897 at ss = 1 / 2 / 3 / 4, the render cost growing up to ss^2 (timings on
+# a loaded CPU were 0.69 / 0.81 / 1.06 / 1.59 s per frame); 2 takes most of the gain.
 DEFAULT_SUPERSAMPLE = 2
 
 
