@@ -9,7 +9,7 @@ Silhouettes: the renderer widens every splat to at least its screen-space low-pa
 (sigma = sqrt(2)/2 px, render/SPEC.md). Surfels smaller than that on screen draw a silhouette set by
 the filter, not by the geometry; so is every surfel seen edge-on at an object's limb, whatever its
 size. A front object bleeds ~1 px over what lies behind it, which is most of a 5 px object's
-mask (GT-surfel oracle at 160x120: ball IoU 0.42, mug 0.44, scene PQ 0.669). Labels are therefore
+mask (GT-surfel oracle at 160x120: ball IoU 0.42, mug 0.44, scene PQ 0.678). Labels are therefore
 rendered with ss x ss samples per pixel and the one-hot weights box-filtered back to the pixel:
 the filter's bleed shrinks to 1/ss px (oracle PQ 0.870 at ss = 2).
 """
