@@ -28,3 +28,15 @@ def orbit(n: int, radius: float, height: float, target=(0.0, 0.0, 0.0)) -> list[
     t = np.asarray(target, dtype=np.float64)
     return [look_at(t + np.array([radius * np.cos(a), radius * np.sin(a), height]), t)
             for a in np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)]
+
+
+def supersample_intrinsics(K, ss: int) -> np.ndarray:
+    """K [3, 3] of an image with ss x ss samples per pixel of the image K describes.
+
+    Pixel centres are integers (OpenCV), so the samples of pixel x sit at x + (i + 0.5) / ss - 0.5,
+    i.e. at X = ss x + (ss - 1) / 2 in the fine image.
+    """
+    K = np.array(K, dtype=np.float64)
+    K[:2, :] *= ss
+    K[:2, 2] += 0.5 * (ss - 1)
+    return K

@@ -142,3 +142,24 @@ def test_scene_mesh_of_surfels_on_known_meshes(two_objects):
     vox = mesh.metadata["tsdf"]["voxel_size"]
     acc, comp = chamfer(mesh, both)
     assert len(mesh.faces) > 500 and acc < vox, (acc, comp, vox)
+
+
+def test_supersampled_mesh_recovers_the_background_behind_silhouettes(two_objects):
+    """Objects on a floor: at one ray per pixel the splats' low-pass filter bleeds ~1 px of object
+    depth over the floor behind each silhouette, so the floor there goes missing; two rays per
+    pixel side halve the bleed (measured: completeness 2.20 -> 1.69 cm, accuracy 1.31 -> 1.38 cm)."""
+    from psimap.scene import scene_from_meshes
+
+    sphere, box, _, cams, _, _, _ = two_objects
+    floor = trimesh.creation.box((2.0, 2.0, 0.02))
+    floor.apply_translation((0, 0, -0.01))
+    cams = cams[::2]
+    cameras = {"K": np.stack([K] * len(cams)), "c2w": np.stack(cams), "width": W, "height": H,
+               "names": [f"c{i}" for i in range(len(cams))]}
+    scene = scene_from_meshes([sphere, box, floor], [1, 2, 0], [3, 4, 5], [], cameras)
+    truth = trimesh.util.concatenate([sphere, box, floor])
+    (acc1, comp1), (acc2, comp2) = (chamfer(scene.mesh(supersample=ss), truth) for ss in (1, 2))
+    assert comp2 < 0.85 * comp1, (comp1, comp2)
+    assert acc2 < 1.15 * acc1, (acc1, acc2)
+    with pytest.raises(PsimapError, match="supersample"):
+        scene.mesh(supersample=0)
