@@ -146,7 +146,6 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
             steps.append({"carved": f"carved from the views' free space ({pitch * 1000:.1f} mm voxels)",
                           "enclosed": f"closed as a voxel solid ({pitch * 1000:.1f} mm)",
                           "shell": f"encloses nothing: thickened to a {pitch * 1000:.0f} mm voxel band",
-                          "hull": "seen too little to enclose or carve: its convex hull (a small object)",
                           }[solid.metadata["solidify"]])
     if not m.is_watertight:
         m2 = m

@@ -30,8 +30,7 @@ def solid_pitch(mesh, resolution: float | None) -> float:
 
 
 def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndarray | None = None,
-             max_closing: int = 3, max_gap: float = 0.05, allow_shell: bool = True, views=None,
-             max_hull_extent: float = 0.3):
+             max_closing: int = 3, max_gap: float = 0.05, allow_shell: bool = True, views=None):
     """Closed trimesh around the solid an open shell `mesh` encloses, or None when it encloses none.
 
     mesh: trimesh (metres, world Z-up). pitch: voxel size (m). support_z: height of the plane the
@@ -41,10 +40,9 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     object (e.g. its surfel discs), added to the shell. Gaps are sealed by a morphological closing
     of 1, 2, ... max_closing voxels, the least that encloses a solid. When none encloses anything,
     the shell's one-voxel band is the solid (allow_shell; else None). The result is watertight (a
-    contour of a voxel field); result.metadata["solidify"] says "carved", "enclosed", "hull" or "shell".
+    contour of a voxel field); result.metadata["solidify"] says "carved", "enclosed" or "shell".
     views: texture.View list (depth + pose): when the shell encloses nothing, the solid is carved
-    from the shell's box by the free space the views saw (`_carve`); failing that, an object no
-    larger than `max_hull_extent` (m) is its convex hull ("hull"), a bigger one its band.
+    from the shell's box by the free space the views saw (`_carve`) before the band is used.
     """
     v = np.asarray(mesh.vertices, np.float64)
     if len(v) < 4 or len(mesh.faces) < 4 or not np.isfinite(v).all():
@@ -79,34 +77,11 @@ def solidify(mesh, pitch: float, support_z: float | None = None, points: np.ndar
     solid, kind = _enclose(shell, support_z is not None, max_closing, allow_shell=False)
     if solid is None and views:
         solid, kind = _carve(shell, origin, pitch, views, pad, floor=support_z is not None), "carved"
-    if solid is None and float(np.max(hi - lo)) <= max_hull_extent:
-        # a small object seen too little to enclose or carve (a bottle of a dozen surfels): its
-        # band would be a hollow skin that topples; small things are close to convex
-        return _hull_solid(pts, None if support_z is None else lo[2])
     if solid is None:
         solid, kind = _enclose(shell, support_z is not None, max_closing, allow_shell)
     if solid is None:
         return None
     return _contour(solid, kind, origin, pitch, None if support_z is None else lo[2])
-
-
-def _hull_solid(pts: np.ndarray, floor_z: float | None):
-    """Convex hull of the shell points [P, 3], standing on floor_z when given (its lowest quarter
-    projected down onto the support), or None when degenerate."""
-    import trimesh
-
-    if floor_z is not None:
-        z = pts[:, 2]
-        low = pts[z <= z.min() + 0.25 * (z.max() - z.min())]
-        pts = np.concatenate([pts, np.column_stack([low[:, :2], np.full(len(low), floor_z)])])
-    try:
-        hull = trimesh.convex.convex_hull(pts)
-    except Exception:
-        return None
-    if not (hull.is_watertight and hull.volume > 0):
-        return None
-    hull.metadata["solidify"] = "hull"
-    return hull
 
 
 def _carve(shell: np.ndarray, origin: np.ndarray, pitch: float, views, pad: int, floor: bool):

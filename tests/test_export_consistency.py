@@ -52,17 +52,12 @@ def test_open_ball_cap_is_closed_down_to_the_support():
 
 
 def test_solidify_degenerate_inputs_give_none():
-    plane = trimesh.creation.box(extents=[0.5, 0.5, 0.001])
+    plane = trimesh.creation.box(extents=[0.2, 0.2, 0.001])
     plane = trimesh.Trimesh(plane.vertices, plane.faces[plane.face_normals[:, 2] > 0.9]).subdivide()
-    assert solidify(plane, 0.01, allow_shell=False) is None     # a sheet encloses nothing
-    band = solidify(plane, 0.01)                                # ... but is a one-voxel plate
+    assert solidify(plane, 0.004, allow_shell=False) is None    # a sheet encloses nothing
+    band = solidify(plane, 0.004)                               # ... but is a one-voxel plate
     assert band.metadata["solidify"] == "shell" and band.is_watertight
-    assert 0.005 <= band.extents[2] <= 0.03 and band.extents[0] == pytest.approx(0.5, abs=0.025)
-    # a small sheet (< 30 cm) becomes its convex hull, which is flat: repair rejects it
-    from psimap.exporters.repair import repair_mesh
-
-    r = repair_mesh(plane.copy().apply_scale(0.4), pitch=0.004)
-    assert not r.ok and ("flat" in r.reason or "sliver" in r.reason or "volume" in r.reason)
+    assert 0.002 <= band.extents[2] <= 0.012 and band.extents[0] == pytest.approx(0.2, abs=0.01)
     assert solidify(trimesh.Trimesh(), 0.004) is None
     nan = _open_box()
     nan.vertices[0] = np.nan
@@ -294,15 +289,3 @@ def test_small_solid_is_cut_by_the_bigger_objects_collider():
     assert ball.mesh.bounds[0, 2] == pytest.approx(0.15, abs=1e-4)      # on the hull's top, not in it
     assert any("cut by the collider of cradle_1" in s for s in ball.repair_steps)
     assert inside.skipped.startswith("inside the collider of cradle_1")  # wholly in the cradle's hull
-
-
-def test_small_shell_that_encloses_nothing_is_its_hull_on_the_support():
-    # two opposite walls of a bottle (a dozen surfels' worth): nothing enclosed, no views to carve
-    can = trimesh.creation.cylinder(radius=0.03, height=0.2, sections=24).apply_translation([0, 0, 0.12])
-    c = can.triangles_center
-    side = (np.abs(can.face_normals[:, 2]) < 0.1) & (np.abs(c[:, 0]) > 0.02)
-    shell = trimesh.Trimesh(can.vertices, can.faces[side], process=True)
-    s = solidify(shell, solid_pitch(shell, 0.004), support_z=0.0)
-    assert s is not None and s.metadata["solidify"] == "hull" and s.is_watertight
-    assert s.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)          # stands on its support
-    assert 0.5 * can.volume < s.volume <= 1.2 * can.volume
