@@ -59,6 +59,7 @@ def _argmax_ids(scene, groups: list[np.ndarray], viewmat, K, width: int, height:
     """
     import torch
 
+    from psimap.camera import supersample_intrinsics
     from psimap.render import rasterize
 
     s = scene.surfels
@@ -71,11 +72,7 @@ def _argmax_ids(scene, groups: list[np.ndarray], viewmat, K, width: int, height:
     alpha = None
     n = int(s["means"].shape[0])
     if ss > 1:
-        # Sample centres of pixel x sit at x + (i + 0.5) / ss - 0.5 (pixel centres are integers):
-        # in the fine image that is X = ss x + (ss - 1) / 2.
-        K = K.clone()
-        K[:2, :] *= ss
-        K[:2, 2] += 0.5 * (ss - 1)
+        K = torch.as_tensor(supersample_intrinsics(K.numpy(), ss), dtype=K.dtype)
     for start in range(0, int(offsets[-1]), CHANNELS_PER_PASS):
         stop = min(int(offsets[-1]), start + CHANNELS_PER_PASS)
         # Surfels without a channel in this chunk still occlude (zero feature rows).
