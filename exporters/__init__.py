@@ -7,7 +7,8 @@ Installed as `psimap.exporters` (never as a top-level `exporters`).
 
 
 def cli_export(opts) -> int:
-    """`psimap export CKPT --format usd|mjcf|glb --out OUT [--completion auto|none] [--no-check]`."""
+    """`psimap export CKPT --format usd|mjcf|glb --out OUT [--completion auto|none] [--no-check]
+    [--static-classes a,b | --dynamic-all]`."""
     import sys
 
     import psimap
@@ -18,6 +19,10 @@ def cli_export(opts) -> int:
         from psimap.exporters.physics import load_density_table
 
         kw["densities"] = load_density_table(opts.densities)
+    from psimap.exporters.physics import parse_static_classes
+
+    kw["static_classes"] = parse_static_classes(getattr(opts, "static_classes", ""),
+                                                getattr(opts, "dynamic_all", False))
     scene = psimap.load(opts.ckpt)
     report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
                           check=not opts.no_check, progress=sys.stderr.isatty(), **kw)
@@ -25,7 +30,8 @@ def cli_export(opts) -> int:
     print(f"exported {n} object(s) to {opts.out} ({opts.format}); skipped {skipped}")
     for o in report["objects"]:
         c = o.get("collision", {})
-        print(f"  {o['name']:<24} {o['physics']['mass_kg']:8.3f} kg  {c.get('kind', '-'):<13} "
+        kind = "static" if o.get("static") else f"{o['physics']['mass_kg']:8.3f} kg"
+        print(f"  {o['name']:<24} {kind:>11}  {c.get('kind', '-'):<13} "
               f"hulls {c.get('hull_count', 0)}  faces {o['faces_before']} -> {o['faces_after']}")
     for s in report["skipped"]:
         print(f"  skipped {s['name']}: {s['reason']}")

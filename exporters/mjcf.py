@@ -1,6 +1,6 @@
 """MJCF writer: `scene.xml` + `assets/` for MuJoCo.
 
-Per object a body at its centre of mass with a freejoint, an explicit <inertial> (principal axes
+Per object a body at its centre of mass with a freejoint (none for a fixed object: static furniture), an explicit <inertial> (principal axes
 and moments), a textured visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass
 and never collides) and its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo
 collides a mesh geom through its convex hull, so each part is one convex piece). The background is
@@ -88,9 +88,10 @@ def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float 
         ph = o.physics
         com = np.asarray(ph.com, np.float64)
         body = ET.SubElement(world, "body", name=o.name, pos=_f(com))
-        ET.SubElement(body, "freejoint", name=f"{o.name}_joint")
-        ET.SubElement(body, "inertial", pos="0 0 0", quat=_f(_quat_wxyz(ph.principal_axes)),
-                      mass=_f(ph.mass), diaginertia=_f(_balanced(ph.principal_inertia)))
+        if not o.fixed:     # a fixed object is welded to the world: no joint, its mass never enters
+            ET.SubElement(body, "freejoint", name=f"{o.name}_joint")
+            ET.SubElement(body, "inertial", pos="0 0 0", quat=_f(_quat_wxyz(ph.principal_axes)),
+                          mass=_f(ph.mass), diaginertia=_f(_balanced(ph.principal_inertia)))
         attrs = visual_assets(o, com)
         ET.SubElement(body, "geom", name=f"{o.name}_visual", group="2", contype="0", conaffinity="0",
                       density="0", **attrs)

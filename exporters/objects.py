@@ -23,6 +23,9 @@ class SceneObject:
     mesh: object
     semantic_id: int = 0
     static: bool = False                    # background: no mass, no freejoint
+    fixed: bool = False                     # an object exported static (collider, no freejoint)
+    fixed_reason: str = ""                  # why (static class, too little evidence)
+    surfel_count: int = -1                  # surfels of the checkpoint behind it (-1: not from one)
     collision: object | None = None         # psimap.exporters.collision.Collision
     physics: object | None = None           # psimap.exporters.physics.Physics
     visual_mesh: object | None = None       # seam-split copy of mesh that uv / vertex_rgb index
@@ -425,6 +428,7 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
                                                                             "opacities")))}
         objs.append(prepare_solid(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,
                                   completion=completion, context=context, resolution=inst.voxel_size))
+        objs[-1].surfel_count = int(np.count_nonzero(members))
         if item.dropped_surfels:
             objs[-1].repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away from its "
                                             "main body left out")

@@ -50,6 +50,38 @@ FRICTION: dict[str, float] = {
     "pillow": 1.0, "cushion": 1.0, "towel": 1.0, "shoe": 0.9, "chair": 0.6, "table": 0.5,
 }
 
+# Classes exported as static scene geometry (no freejoint / no RigidBodyAPI): heavy furniture that a
+# robot treats as part of the room. Matched like the tables above (exact name, then its words).
+# Edit freely, or pass `static_classes=` to export_scene (CLI: --static-classes, --dynamic-all).
+STATIC_CLASSES: frozenset[str] = frozenset({
+    "table", "desk", "counter", "countertop", "cabinet", "shelf", "shelves", "bookshelf", "bookcase",
+    "dresser", "wardrobe", "closet", "bed", "sofa", "couch", "refrigerator", "fridge", "oven", "stove",
+    "dishwasher", "washer", "dryer", "sink", "toilet", "bathtub", "piano", "nightstand", "sideboard",
+})
+
+
+def is_static_class(label: str, static_classes=None) -> bool:
+    """Whether objects of class `label` are exported static (same word matching as `lookup`)."""
+    table = {k: 1.0 for k in (STATIC_CLASSES if static_classes is None else static_classes)}
+    if not table:
+        return False
+    table.setdefault("default", 0.0)
+    return lookup(table, label)[0] > 0
+
+
+def parse_static_classes(text: str, dynamic_all: bool = False):
+    """CLI value -> the static class set: "" = the default list, "none" or dynamic_all = empty,
+    else comma-separated class names (they replace the default list)."""
+    if dynamic_all or text.strip().lower() == "none":
+        return frozenset()
+    if not text.strip():
+        return STATIC_CLASSES
+    names = frozenset("_".join(_words(t)) for t in text.split(","))
+    names = frozenset(n for n in names if n)
+    if not names:
+        raise PsimapError(f"--static-classes {text!r}: no class names (comma-separated, or 'none')")
+    return names
+
 
 def _words(label: str) -> list[str]:
     return [w for w in re.split(r"[^a-z0-9]+", label.lower()) if w]

@@ -36,13 +36,15 @@ def floor_height(objects, background=None) -> float:
 
 def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] = "mjcf", *,
                  completion: str = "auto", check: bool = True, background=None,
-                 progress: bool = False, seed: int = 0, **kw) -> dict:
+                 progress: bool = False, seed: int = 0, static_classes=None, **kw) -> dict:
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
     SceneObject (background: optional static SceneObject). format: "mjcf" | "usd" | "glb" | "all"
     or a list. check: run the MuJoCo simulation check (on the MJCF, always written for it); a load
     failure raises PsimapError, a failed settle is reported (report["check"]["passed"]).
+    static_classes: class names exported static (collider, no freejoint / rigid body); None = the
+    default heavy-furniture list (exporters.physics.STATIC_CLASSES), an empty set = all dynamic.
     """
     from psimap.exporters.objects import SceneObject, extract_scene
     from psimap.io_utils import atomic_dir
@@ -64,6 +66,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                                              seed=seed, timings=scene_steps, **kw)
     t_objects = time.perf_counter() - t0
     objs = [o for o in all_objs if not o.skipped and not o.static]
+    mark_fixed(objs, static_classes)
     names = [o.name for o in objs]
     if len(set(names)) != len(names):
         raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
@@ -128,6 +131,22 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                                                      indent=2, sort_keys=True) + "\n")
     report["timings"] = timings
     return report
+
+
+def mark_fixed(objs, static_classes=None) -> None:
+    """Set `.fixed` (+ reason) on objects of a static class, for this export: a class-rule mark from
+    an earlier export with other classes is undone; other reasons (thin evidence) stay."""
+    from psimap.exporters.physics import is_static_class
+
+    for o in objs:
+        by_class = is_static_class(o.label, static_classes)
+        if by_class and not o.fixed:
+            o.fixed, o.fixed_reason = True, f"{CLASS_RULE}: '{o.label}'"
+        elif not by_class and o.fixed and o.fixed_reason.startswith(CLASS_RULE):
+            o.fixed, o.fixed_reason = False, ""
+
+
+CLASS_RULE = "static furniture class"
 
 
 def _write_meshes(objs, background, root: Path) -> dict:

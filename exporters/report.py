@@ -32,7 +32,8 @@ def object_entry(obj, files: dict) -> dict:
     """Report entry of one SceneObject; files: {"mesh": ..., "collision": [...]} relative paths."""
     e = {
         "name": obj.name, "instance_id": int(obj.instance_id), "class": obj.label,
-        "semantic_id": int(obj.semantic_id), "static": bool(obj.static),
+        "semantic_id": int(obj.semantic_id), "static": bool(obj.static or obj.fixed),
+        "static_reason": obj.fixed_reason or None, "surfels": int(obj.surfel_count),
         "skipped": obj.skipped or None,
         "faces_before": int(obj.faces_before), "faces_after": int(obj.faces_after),
         "decimation_error_m": obj.decimation_error, "decimation_mean_error_m": obj.decimation_mean_error,

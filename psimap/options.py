@@ -80,6 +80,9 @@ class ExportOptions:
     completion: str = opt("auto", "object completion: auto or none", choices=["auto", "none"])
     no_check: bool = opt(False, "skip the MuJoCo simulation check")
     densities: str = opt("", "JSON file {class name: kg/m^3} overriding the default density table")
+    static_classes: str = opt("", "comma-separated classes exported static (no freejoint / rigid body); "
+                                  "default: heavy furniture (table, cabinet, shelf, ...); 'none' = all dynamic")
+    dynamic_all: bool = opt(False, "export every object as a dynamic rigid body (no static furniture)")
 
 
 @dataclass

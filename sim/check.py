@@ -129,7 +129,7 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
                support_gap: float = 0.005) -> dict:
     """Load, penetration, settle and stability check of an MJCF scene. Returns a plain dict report:
 
-    loaded, bodies, min_contact_dist (m), nudges {body: m}, drift {body: m} for resting bodies,
+    loaded, bodies (free), static_bodies (names of world-welded bodies with colliders), min_contact_dist (m), nudges {body: m}, drift {body: m} for resting bodies,
     max_drift, unsupported (bodies not in contact at t=0), fell {body: m dropped} (unsupported
     bodies that fell more than max_drift: a failure), nan, exploded, sim_seconds_per_wall_second,
     passed, failures [str].
@@ -155,6 +155,11 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     model.geom_margin[:] = margin0
     mujoco.mj_forward(model, data)
     free = _free_bodies(model)
+    # static objects (welded to the world, with colliders) are supports, never movers
+    static_bodies = sorted({mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[g]))
+                            for g in range(model.ngeom)
+                            if model.geom_bodyid[g] > 0 and int(model.geom_bodyid[g]) not in set(free)
+                            and (model.geom_contype[g] or model.geom_conaffinity[g])})
     names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in free]
     start = np.array([data.xpos[b].copy() for b in free]).reshape(-1, 3)
     resting = [b in touching for b in free]
@@ -193,6 +198,7 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         "loaded": True,
         "file": path.name,
         "bodies": len(free),
+        "static_bodies": static_bodies,
         "duration_s": float(steps * model.opt.timestep),
         "min_contact_dist": float(min_dist),
         "nudges": nudges,

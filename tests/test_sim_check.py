@@ -87,3 +87,17 @@ def test_ball_sphere_primitive_stays_put_hull_rolls(tmp_path):
     obj_hull.physics.com = np.asarray(obj_hull.mesh.center_mass)
     r2 = export_scene([obj_hull], tmp_path / "hull", "mjcf")
     assert r2["check"]["drift"]["ball_1"] > r["check"]["drift"]["ball_1"]
+
+
+def test_static_body_is_support_not_mover(tmp_path):
+    # a static table (no joint) with a box 3 mm inside its top: the box is lifted out, the table is
+    # never nudged nor counted as a mover, and the box rests on it
+    table = ('<body name="table" pos="0.5 0 0.2"><geom type="box" size="0.4 0.3 0.2"/></body>\n')
+    text = BOX.format(z=0.447, extra=table).replace('pos="0 0 0.447"', 'pos="0.5 0 0.447"')
+    p = _write(tmp_path, text)
+    r = check_mjcf(p)
+    assert r["passed"], r["failures"]
+    assert r["static_bodies"] == ["table"] and r["bodies"] == 1
+    assert list(r["nudges"]) == ["box"] and r["nudges"]["box"] == pytest.approx(0.003, abs=1e-3)
+    assert list(r["drift"]) == ["box"] and r["drift"]["box"] < 1e-3 and r["unsupported"] == []
+    assert 'name="table" pos="0.5 0 0.2"' in p.read_text()

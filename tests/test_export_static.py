@@ -1,0 +1,92 @@
+"""Static furniture: per-class static rule (exporters.physics), MJCF without freejoint, USD without
+RigidBodyAPI, report.json "static", the sim check treats them as supports; the CLI override."""
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+
+import pytest
+import trimesh
+
+from psimap import PsimapError
+
+
+def test_static_class_rule_and_override():
+    from psimap.exporters.physics import STATIC_CLASSES, is_static_class, parse_static_classes
+
+    for label in ("table", "coffee table", "dining_tables", "Kitchen Cabinet", "bookshelf", "sofa"):
+        assert is_static_class(label), label
+    for label in ("mug", "chair", "box", "bottle", "tablet"):
+        assert not is_static_class(label), label
+    assert parse_static_classes("") == STATIC_CLASSES
+    assert parse_static_classes("none") == frozenset() and parse_static_classes("table", True) == frozenset()
+    custom = parse_static_classes("Mug, water bottle")
+    assert custom == {"mug", "water_bottle"}
+    assert is_static_class("mug", custom) and is_static_class("water bottle", custom)
+    assert not is_static_class("table", custom) and not is_static_class("table", frozenset())
+    with pytest.raises(PsimapError, match="static-classes"):
+        parse_static_classes(" , ,")
+
+
+def _scene():
+    from psimap.exporters.objects import build_object
+
+    table = trimesh.creation.box(extents=[0.8, 0.6, 0.4]).apply_translation([0, 0, 0.2])
+    box = trimesh.creation.box(extents=[0.12, 0.08, 0.1]).apply_translation([0.1, 0.05, 0.45])
+    return [build_object(m, lab, i + 1, completion="none") for i, (m, lab) in enumerate([(table, "table"),
+                                                                                          (box, "box")])]
+
+
+@pytest.fixture(scope="module")
+def objects():
+    return _scene()
+
+
+def _bodies(xml):
+    return {b.get("name"): b for b in ET.parse(xml).getroot().iter("body")}
+
+
+def test_static_furniture_exported_static(objects, tmp_path):
+    from pxr import Usd, UsdPhysics
+
+    from psimap.exporters.pipeline import export_scene
+
+    r = export_scene(objects, tmp_path / "s", ["mjcf", "usd"])
+    b = _bodies(tmp_path / "s" / "scene.xml")
+    assert b["table_1"].find("freejoint") is None and b["table_1"].find("inertial") is None
+    assert [g.get("group") for g in b["table_1"].iter("geom") if g.get("group") == "3"] == ["3"]
+    assert b["box_2"].find("freejoint") is not None and b["box_2"].find("inertial") is not None
+    stage = Usd.Stage.Open(str(tmp_path / "s" / "scene.usda"))
+    table = stage.GetPrimAtPath("/World/table_1")
+    assert not table.HasAPI(UsdPhysics.RigidBodyAPI) and not table.HasAPI(UsdPhysics.MassAPI)
+    assert stage.GetPrimAtPath("/World/table_1/collision_0").HasAPI(UsdPhysics.CollisionAPI)
+    assert stage.GetPrimAtPath("/World/box_2").HasAPI(UsdPhysics.RigidBodyAPI)
+    assert r["usd_validation"]["errors"] == []
+    rep = json.loads((tmp_path / "s" / "report.json").read_text())
+    e = {o["name"]: o for o in rep["objects"]}
+    assert e["table_1"]["static"] is True and "static furniture" in e["table_1"]["static_reason"]
+    assert e["box_2"]["static"] is False and e["box_2"]["static_reason"] is None
+    c = r["check"]
+    assert c["passed"], c["failures"]
+    # the static table is a support, not a mover; the box rests on it (in contact at t = 0)
+    assert c["bodies"] == 1 and c["static_bodies"] == ["table_1"]
+    assert list(c["drift"]) == ["box_2"] and c["drift"]["box_2"] < 2e-3 and c["unsupported"] == []
+
+
+def test_override_makes_everything_dynamic(objects, tmp_path):
+    from pxr import Usd, UsdPhysics
+
+    from psimap.exporters.pipeline import export_scene
+
+    r = export_scene(objects, tmp_path / "d", ["mjcf", "usd"], static_classes=frozenset())
+    b = _bodies(tmp_path / "d" / "scene.xml")
+    assert b["table_1"].find("freejoint") is not None and b["box_2"].find("freejoint") is not None
+    stage = Usd.Stage.Open(str(tmp_path / "d" / "scene.usda"))
+    assert stage.GetPrimAtPath("/World/table_1").HasAPI(UsdPhysics.RigidBodyAPI)
+    assert r["check"]["bodies"] == 2 and r["check"]["static_bodies"] == []
+    assert all(not o["static"] for o in r["objects"])
+    # and the other way: the box made static by name
+    r2 = export_scene(_scene(), tmp_path / "b", "mjcf", static_classes=frozenset({"box"}), check=False)
+    b2 = _bodies(tmp_path / "b" / "scene.xml")
+    assert b2["box_2"].find("freejoint") is None and b2["table_1"].find("freejoint") is not None
+    assert [o["static"] for o in r2["objects"]] == [False, True]
