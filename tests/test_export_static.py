@@ -90,3 +90,24 @@ def test_override_makes_everything_dynamic(objects, tmp_path):
     b2 = _bodies(tmp_path / "b" / "scene.xml")
     assert b2["box_2"].find("freejoint") is None and b2["table_1"].find("freejoint") is not None
     assert [o["static"] for o in r2["objects"]] == [False, True]
+
+
+@pytest.mark.parametrize("args, expect", [([], "default"), (["--dynamic-all"], set()),
+                                          (["--static-classes", "none"], set()),
+                                          (["--static-classes", "mug,shelf"], {"mug", "shelf"})])
+def test_cli_static_flags_reach_export(monkeypatch, tmp_path, args, expect):
+    import psimap
+    from psimap.cli import main
+    from psimap.exporters import pipeline
+    from psimap.exporters.physics import STATIC_CLASSES
+
+    seen = {}
+
+    def fake_export(scene, out, fmt, **kw):
+        seen.update(kw)
+        return {"objects": [], "skipped": [], "check": None, "timings": {}}
+
+    monkeypatch.setattr(psimap, "load", lambda path: object())
+    monkeypatch.setattr(pipeline, "export_scene", fake_export)
+    assert main(["export", str(tmp_path / "x.ckpt"), "--out", str(tmp_path / "o"), *args]) == 0
+    assert set(seen["static_classes"]) == (set(STATIC_CLASSES) if expect == "default" else expect)
