@@ -23,6 +23,8 @@ def cli_export(opts) -> int:
 
     kw["static_classes"] = parse_static_classes(getattr(opts, "static_classes", ""),
                                                 getattr(opts, "dynamic_all", False))
+    if getattr(opts, "dynamic_all", False):
+        kw["min_rigid_surfels"] = 0
     scene = psimap.load(opts.ckpt)
     report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
                           check=not opts.no_check, progress=sys.stderr.isatty(), **kw)

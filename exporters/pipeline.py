@@ -20,6 +20,12 @@ from psimap import PsimapError
 
 FORMATS = ("mjcf", "usd", "glb")
 
+# A thing reconstructed from fewer surfels than this is exported static (with the reason): ~5 discs
+# per side of a box leave its underside, which decides how it rests, a guess. On the trained demo
+# checkpoint the objects with 10 and 26 surfels rocked 2.6 / 2.1 cm in the settle check while those
+# with 29+ stayed within 4 mm (benchmarks/RESULTS.md, "trained checkpoint"). Edit freely.
+MIN_RIGID_SURFELS = 30
+
 
 def floor_height(objects, background=None) -> float:
     """Floor z: the background's floor plane (exporters.consistency, where objects were cut), unless
@@ -36,7 +42,8 @@ def floor_height(objects, background=None) -> float:
 
 def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] = "mjcf", *,
                  completion: str = "auto", check: bool = True, background=None,
-                 progress: bool = False, seed: int = 0, static_classes=None, **kw) -> dict:
+                 progress: bool = False, seed: int = 0, static_classes=None,
+                 min_rigid_surfels: int = MIN_RIGID_SURFELS, **kw) -> dict:
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
@@ -45,6 +52,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     failure raises PsimapError, a failed settle is reported (report["check"]["passed"]).
     static_classes: class names exported static (collider, no freejoint / rigid body); None = the
     default heavy-furniture list (exporters.physics.STATIC_CLASSES), an empty set = all dynamic.
+    min_rigid_surfels: an object a checkpoint holds fewer surfels of is exported static with the
+    reason in report.json (0 = never).
     """
     from psimap.exporters.objects import SceneObject, extract_scene
     from psimap.io_utils import atomic_dir
@@ -66,7 +75,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                                              seed=seed, timings=scene_steps, **kw)
     t_objects = time.perf_counter() - t0
     objs = [o for o in all_objs if not o.skipped and not o.static]
-    mark_fixed(objs, static_classes)
+    mark_fixed(objs, static_classes, min_rigid_surfels)
     names = [o.name for o in objs]
     if len(set(names)) != len(names):
         raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
@@ -133,20 +142,21 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     return report
 
 
-def mark_fixed(objs, static_classes=None) -> None:
-    """Set `.fixed` (+ reason) on objects of a static class, for this export: a class-rule mark from
-    an earlier export with other classes is undone; other reasons (thin evidence) stay."""
+def mark_fixed(objs, static_classes=None, min_rigid_surfels: int = MIN_RIGID_SURFELS) -> None:
+    """Set `.fixed` and `.fixed_reason` for this export: objects of a static class, and objects seen
+    too little to be a reliable rigid body (fewer than min_rigid_surfels surfels in the checkpoint).
+    Recomputed on every call (the same objects can be exported with other rules)."""
     from psimap.exporters.physics import is_static_class
 
     for o in objs:
-        by_class = is_static_class(o.label, static_classes)
-        if by_class and not o.fixed:
-            o.fixed, o.fixed_reason = True, f"{CLASS_RULE}: '{o.label}'"
-        elif not by_class and o.fixed and o.fixed_reason.startswith(CLASS_RULE):
-            o.fixed, o.fixed_reason = False, ""
+        o.fixed, o.fixed_reason = False, ""
+        if is_static_class(o.label, static_classes):
+            o.fixed, o.fixed_reason = True, f"static furniture class: '{o.label}'"
+        elif 0 <= o.surfel_count < min_rigid_surfels:
+            o.fixed, o.fixed_reason = True, (f"too little evidence for a rigid body: {o.surfel_count} "
+                                             f"surfels < {min_rigid_surfels}")
 
 
-CLASS_RULE = "static furniture class"
 
 
 def _write_meshes(objs, background, root: Path) -> dict:

@@ -82,7 +82,8 @@ class ExportOptions:
     densities: str = opt("", "JSON file {class name: kg/m^3} overriding the default density table")
     static_classes: str = opt("", "comma-separated classes exported static (no freejoint / rigid body); "
                                   "default: heavy furniture (table, cabinet, shelf, ...); 'none' = all dynamic")
-    dynamic_all: bool = opt(False, "export every object as a dynamic rigid body (no static furniture)")
+    dynamic_all: bool = opt(False, "export every object as a dynamic rigid body (no static furniture, "
+                                    "barely seen objects too)")
 
 
 @dataclass

@@ -111,3 +111,23 @@ def test_cli_static_flags_reach_export(monkeypatch, tmp_path, args, expect):
     monkeypatch.setattr(pipeline, "export_scene", fake_export)
     assert main(["export", str(tmp_path / "x.ckpt"), "--out", str(tmp_path / "o"), *args]) == 0
     assert set(seen["static_classes"]) == (set(STATIC_CLASSES) if expect == "default" else expect)
+    assert seen.get("min_rigid_surfels", 30) == (0 if "--dynamic-all" in args else 30)
+
+
+def test_barely_seen_object_is_static_with_reason(tmp_path):
+    from psimap.exporters.pipeline import MIN_RIGID_SURFELS, export_scene
+
+    objs = _scene()
+    objs[1].surfel_count = MIN_RIGID_SURFELS - 1      # the box: a handful of surfels in the checkpoint
+    r = export_scene(objs, tmp_path / "t", "mjcf", check=False)
+    e = {o["name"]: o for o in r["objects"]}
+    assert e["box_2"]["static"] and e["box_2"]["surfels"] == MIN_RIGID_SURFELS - 1
+    assert "too little evidence" in e["box_2"]["static_reason"]
+    assert _bodies(tmp_path / "t" / "scene.xml")["box_2"].find("freejoint") is None
+    # enough surfels, or the rule switched off: dynamic again (the mark is recomputed per export)
+    objs[1].surfel_count = MIN_RIGID_SURFELS
+    r = export_scene(objs, tmp_path / "u", "mjcf", check=False)
+    assert not {o["name"]: o for o in r["objects"]}["box_2"]["static"]
+    objs[1].surfel_count = 3
+    r = export_scene(objs, tmp_path / "v", "mjcf", check=False, min_rigid_surfels=0)
+    assert not {o["name"]: o for o in r["objects"]}["box_2"]["static"]
