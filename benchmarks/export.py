@@ -289,12 +289,15 @@ def trained_table(tmp: Path):
                      len(c["unsupported"]), len(c.get("fell", {})), total])
         skipped = "; ".join(f"{s['name']}: {s['reason']}" for s in r["skipped"]) or "none"
         fails = "; ".join(c["failures"]) or "none"
-        rows[-1].append(f"skipped: {skipped}; failures: {fails}")
+        static = ", ".join(f"{o['name']} ({o['static_reason']})" for o in r["objects"] if o.get("static")) or "none"
+        rows[-1].append(f"static: {static}; skipped: {skipped}; failures: {fails}")
     header = ["completion", "objects", "skipped", "sim check", "initial penetration mm", "nudged", "max nudge mm",
               "max drift mm", "unsupported", "fell", "total s", "notes"]
     append_results("Export: trained checkpoint (psimap generate + psimap train, seed 0) through the MuJoCo check",
                    markdown_table(header, rows),
-                   f"Initial penetration is after the nudges the check applies and reports. Load average {load:.1f}.",
+                   "Initial penetration is after the nudges the check applies and reports; static objects "
+                   "(furniture classes, or fewer surfels than exporters.pipeline.MIN_RIGID_SURFELS) are supports, "
+                   f"not movers. Load average {load:.1f} on 2 shared cores: times are noisy.",
                    cmd)
 
 

@@ -22,8 +22,9 @@ FORMATS = ("mjcf", "usd", "glb")
 
 # A thing reconstructed from fewer surfels than this is exported static (with the reason): ~5 discs
 # per side of a box leave its underside, which decides how it rests, a guess. On the trained demo
-# checkpoint the objects with 10 and 26 surfels rocked 2.6 / 2.1 cm in the settle check while those
-# with 29+ stayed within 4 mm (benchmarks/RESULTS.md, "trained checkpoint"). Edit freely.
+# checkpoint (furniture static) the objects with 10 and 26 surfels rocked 2.6 / 2.1 cm in the settle
+# check without completion, the one with 29 moved 5.5 cm after completion grew it, the one with 31
+# stayed within 1.3 mm (benchmarks/RESULTS.md, "trained checkpoint", 14:03). Edit freely.
 MIN_RIGID_SURFELS = 30
 
 
