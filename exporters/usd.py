@@ -6,7 +6,8 @@ Xform (RigidBodyAPI, MassAPI with mass / centre of mass / principal inertia) hol
 colliders (CollisionAPI; convex parts with MeshCollisionAPI approximation convexHull, primitives as
 UsdGeom Sphere / Cube / Cylinder). The class goes on the object through UsdSemantics.LabelsAPI
 ("class" taxonomy, what Isaac Sim's labelling reads) and the instance id as `psimap:instanceId`.
-The background is static (no RigidBodyAPI) with a triangle-mesh collider (approximation none).
+The background is static (no RigidBodyAPI) with a triangle-mesh collider (approximation none);
+so is a fixed object (static furniture, barely seen things): colliders without RigidBodyAPI / MassAPI.
 """
 from __future__ import annotations
 
