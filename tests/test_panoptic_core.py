@@ -210,3 +210,34 @@ def test_seen_counts_only_frames_where_the_query_owns_pixels():
                      K, torch.eye(4), w, h)
     assert field.visible.tolist() == [3.0, 0.0]
     assert field.matched.tolist() == [3.0, 0.0]
+
+
+@pytest.mark.parametrize("w_class, winner", [(0.0, 0), (1.0, 1)])
+def test_class_term_of_the_matching_cost(w_class, winner):
+    """Two queries overlap a bottle mask; query 0 overlaps it a little better but renders as box,
+    query 1 renders as bottle. Dice + BCE alone picks query 0; the class term picks query 1."""
+    from types import SimpleNamespace
+
+    from psimap.data.frames import ClassInfo
+    from psimap.panoptic.field import PanopticConfig, PanopticField
+
+    h, w = 12, 16
+    K = torch.tensor([[10.0, 0, 8], [0, 10.0, 6], [0, 0, 1]])
+    feat, mean, cov = init_from_points([torch.randn(30, 3) * 0.05, torch.randn(30, 3) * 0.05 + 5.0], 4)
+    classes = [ClassInfo(1, "box", True), ClassInfo(2, "bottle", True)]
+    field = PanopticField(5, classes, InstanceQueries(feat, mean, cov),
+                          PanopticConfig(feat_dim=4, spawn=False, w_class=w_class))
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[3:9, 4:12] = 7
+    sem = torch.where(inst > 0, 2, 0)
+
+    def render(idx, feats, topk):
+        img = torch.full((h, w, feats.shape[1]), 0.02)
+        img[3:9, 3:11, 0] = 0.9          # query 0: 7 of the mask's 8 columns, one outside
+        img[3:9, 6:12, 1] = 0.9          # query 1: 6 of 8 columns, none outside
+        img[..., 2] = torch.where(torch.arange(w) < 9, 4.0, -4.0)    # box logit left,
+        img[..., 3] = -img[..., 2]                                  # bottle logit right
+        return SimpleNamespace(features=img + feats.sum() * 0, alpha=torch.ones(h, w))
+
+    field.losses(render, torch.zeros(5, 3), torch.arange(5), inst, sem, K, torch.eye(4), w, h)
+    assert field.matched.tolist() == [1.0 - winner, float(winner)]
