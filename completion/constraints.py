@@ -54,6 +54,8 @@ def attach_outliers(mesh, points: np.ndarray, tolerance: float, min_points: int 
     adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(out), len(out)))
     n, lab = connected_components(adj, directed=False)
     man, added = to_manifold(mesh), 0
+    if man.is_empty():      # not an oriented 2-manifold: a union would keep only the added parts
+        return mesh, 0
     for k in range(n):
         part = out[lab == k]
         if len(part) < min_points:
@@ -66,7 +68,13 @@ def attach_outliers(mesh, points: np.ndarray, tolerance: float, min_points: int 
         if hull.volume > 0:
             man = man + to_manifold(hull)
             added += 1
-    return (from_manifold(man), added) if added else (mesh, 0)
+    if not added:
+        return mesh, 0
+    merged = from_manifold(man)
+    # a union that came back empty or open (the shape did not convert cleanly) adds nothing
+    if len(merged.faces) == 0 or not merged.is_watertight:
+        return mesh, 0
+    return merged, added
 
 
 def blocking_planes(planes, points: np.ndarray, tolerance: float):

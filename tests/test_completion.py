@@ -409,3 +409,19 @@ def test_capped_mesh_counts_only_camera_confirmed_surface():
     assert res.completed and "unseen by any camera ignored" in res.reason, res.reason
     assert res.coverage < min(alone.coverage - 0.1, 0.9)
     assert chamfer(res.mesh, gt) < 0.003
+
+
+def test_attach_outliers_never_drops_the_shape():
+    """A shape manifold3d cannot read (an open cylinder) must come back as it was, not as the
+    union of nothing with the outlier hulls (that returned a lone handle, or an empty mesh)."""
+    from psimap.completion.constraints import attach_outliers
+
+    cyl = trimesh.creation.cylinder(0.04, 0.1, sections=32)
+    open_cyl = cyl.submesh([np.flatnonzero(np.abs(cyl.face_normals[:, 2]) < 0.5)], append=True)
+    rng = np.random.default_rng(0)
+    handle = rng.normal([0.07, 0, 0], 0.004, (200, 3))          # a cluster well outside the surface
+    pts = np.concatenate([trimesh.sample.sample_surface(cyl, 500, seed=1)[0], handle])
+    out, n = attach_outliers(open_cyl, pts, 0.003)
+    assert n == 0 and out is open_cyl
+    closed, n = attach_outliers(cyl, pts, 0.003)               # a closed shape gains the handle
+    assert n == 1 and closed.is_watertight and closed.volume > cyl.volume
