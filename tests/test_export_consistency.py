@@ -226,6 +226,7 @@ def _depth_views(meshes, eyes, target, K, w, h):
     """texture.View list with exact depth maps of `meshes` (open3d ray casting) from `eyes`."""
     import open3d as o3d
 
+    from psimap.camera import look_at
     from psimap.exporters.texture import View
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -236,12 +237,7 @@ def _depth_views(meshes, eyes, target, K, w, h):
     pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1) @ np.linalg.inv(K).T      # z = 1
     views = []
     for eye in eyes:
-        z = np.asarray(target, float) - eye
-        z /= np.linalg.norm(z)
-        x = np.cross(z, [0, 0, 1.0])
-        x /= np.linalg.norm(x)
-        c2w = np.eye(4)
-        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, np.cross(z, x), z, eye
+        c2w = look_at(eye, target)
         d = pix @ c2w[:3, :3].T
         rays = np.concatenate([np.broadcast_to(eye, d.shape), d], 1).astype(np.float32)
         t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(h, w)

@@ -10,6 +10,7 @@ import pytest
 import trimesh
 
 from psimap import PsimapError
+from psimap.camera import look_at
 
 
 def _objects():
@@ -120,15 +121,6 @@ def test_bad_format_and_inputs(objects, tmp_path):
 
 
 # ---------------------------------------------------------------- checkpoint path
-def _look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, np.cross(z, x), z, eye
-    return c2w
-
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory):
@@ -139,7 +131,7 @@ def ckpt(tmp_path_factory):
     box = trimesh.creation.box(extents=[0.2, 0.14, 0.12]).apply_translation([0.15, 0.05, 0.06])
     w, h, n = 96, 72, 8
     K = np.array([[80.0, 0, w / 2], [0, 80.0, h / 2], [0, 0, 1]])
-    c2ws = [_look_at(np.array([0.7 * np.cos(a), 0.7 * np.sin(a), 0.55]), [0.1, 0.05, 0.04])
+    c2ws = [look_at(np.array([0.7 * np.cos(a), 0.7 * np.sin(a), 0.55]), [0.1, 0.05, 0.04])
             for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
     cams = {"K": np.stack([K] * n), "c2w": np.stack(c2ws), "width": w, "height": h,
             "names": [f"c{i}" for i in range(n)]}
