@@ -11,8 +11,20 @@ from typing import Callable, Sequence
 import numpy as np
 
 
+class DepthSized:
+    """`height` / `width` of a frame from its depth map [H, W] (numpy array or tensor)."""
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth.shape[1])
+
+
 @dataclass
-class Frame:
+class Frame(DepthSized):
     """One posed RGB-D frame.
 
     rgb: [H, W, 3] float32 in [0, 1]; depth: [H, W] float32 metres, 0 = invalid;
@@ -31,14 +43,6 @@ class Frame:
     name: str = ""                      # image file stem, used to name per-frame outputs
     gt_semantic: np.ndarray | None = None   # cross-view-consistent ground truth, when present
     gt_instance: np.ndarray | None = None
-
-    @property
-    def height(self) -> int:
-        return int(self.depth.shape[0])
-
-    @property
-    def width(self) -> int:
-        return int(self.depth.shape[1])
 
     @property
     def w2c(self) -> np.ndarray:

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from psimap import PsimapError
+from psimap.data.frames import DepthSized
 from psimap.train.config import TrainConfig
 from psimap.train import losses as L
 from psimap.train.density import GradStats, accumulate, densify_and_prune, quat_to_rotmat
@@ -23,7 +24,7 @@ PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logit", "color_logit")
 
 
 @dataclass
-class TrainFrame:
+class TrainFrame(DepthSized):
     """One training frame at training resolution: rgb [H,W,3], depth [H,W] (0 = invalid), K [3,3]
     float32 tensors; c2w [4,4] float64 numpy (OpenCV); viewmat [4,4] float32 world-to-camera."""
 
@@ -35,14 +36,6 @@ class TrainFrame:
     viewmat: torch.Tensor
     semantic: torch.Tensor | None = None   # [H,W] long per-frame pseudo-labels (0 = none), or None
     instance: torch.Tensor | None = None
-
-    @property
-    def height(self) -> int:
-        return int(self.depth.shape[0])
-
-    @property
-    def width(self) -> int:
-        return int(self.depth.shape[1])
 
     @property
     def valid(self) -> torch.Tensor:
