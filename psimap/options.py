@@ -91,3 +91,5 @@ class LabelsOptions:
     ckpt: str = pos("trained scene checkpoint")
     data: str = pos("scene folder whose cameras to render")
     out: str = opt("labels", "output folder (COCO panoptic)")
+    topk: int = opt(0, "blend only the K largest weights per pixel (faster, see benchmarks/panoptic.py's "
+                       "Top-K curve); 0 = all")

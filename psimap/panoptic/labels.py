@@ -218,7 +218,7 @@ def has_labels(scene) -> bool:
 
 
 def cli_labels(opts) -> int:
-    """`psimap labels scene.ckpt DATA --out DIR`."""
+    """`psimap labels scene.ckpt DATA --out DIR [--topk K]`."""
     import psimap
 
     ckpt = Path(opts.ckpt)
@@ -227,7 +227,9 @@ def cli_labels(opts) -> int:
     scene = psimap.load(ckpt)
     if not has_labels(scene):
         raise PsimapError(f"{ckpt}: the checkpoint has no panoptic labels (train with the panoptic field)")
-    path = write_labels(scene, opts.data, opts.out, progress=True)
+    if opts.topk < 0:
+        raise PsimapError(f"--topk must be >= 0 (0 = all), got {opts.topk}")
+    path = write_labels(scene, opts.data, opts.out, topk=opts.topk or None, progress=True)
     import json
 
     meta = json.loads(Path(path).read_text())
