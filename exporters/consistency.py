@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from psimap.completion.meshops import to_manifold
+
 # an object this much wider than the largest thing class a robot moves (a table: ~2 m) is not one
 MAX_EXTENT = 2.5
 MIN_KEEP = 0.25                 # volume fraction an object must keep after an overlap cut
@@ -40,14 +42,6 @@ def floor_from_background(background) -> float | None:
     k = int(hist.argmax())
     sel = (zc >= edges[k]) & (zc <= edges[k + 1])
     return float(np.average(zc[sel], weights=area[sel]))
-
-
-def _solid(mesh):
-    import manifold3d
-    import trimesh  # noqa: F401  (trimesh arrays in, manifold out)
-
-    return manifold3d.Manifold(manifold3d.Mesh(np.asarray(mesh.vertices, np.float32),
-                                               np.asarray(mesh.faces, np.uint32)))
 
 
 def _to_trimesh(man):
@@ -86,7 +80,7 @@ def make_consistent(objects, floor_z: float | None = None, *, max_extent: float 
             span = hi - lo
             keep = manifold3d.Manifold.cube(list(span + 0.2), False).translate(
                 [float(lo[0] - 0.1), float(lo[1] - 0.1), float(floor_z)])
-            cut = _to_trimesh(_solid(o.mesh) ^ keep)
+            cut = _to_trimesh(to_manifold(o.mesh) ^ keep)
             _apply_cut(o, cut, min_keep, f"cut at the floor ({depth * 1000:.0f} mm below it)",
                        "below the floor")
     live = [o for o in live if not o.skipped]
@@ -98,7 +92,7 @@ def make_consistent(objects, floor_z: float | None = None, *, max_extent: float 
         for small in live[i + 1:]:
             if small.skipped or not _boxes_overlap(big.mesh.bounds, small.mesh.bounds):
                 continue
-            a, b = _solid(big.mesh), _solid(small.mesh)
+            a, b = to_manifold(big.mesh), to_manifold(small.mesh)
             shared = float((a ^ b).volume())
             if shared < MIN_OVERLAP:
                 continue
@@ -135,11 +129,11 @@ def cut_by_colliders(obj, finished) -> None:
         if other.skipped or other.collision is None or not _boxes_overlap(other.mesh.bounds, obj.mesh.bounds,
                                                                           pad=0.01):
             continue
-        hulls = [_solid(p) for p in other.collision.parts if len(p.faces) >= 4]
+        hulls = [to_manifold(p) for p in other.collision.parts if len(p.faces) >= 4]
         if not hulls:
             continue
         union = manifold3d.Manifold.batch_boolean(hulls, manifold3d.OpType.Add) if len(hulls) > 1 else hulls[0]
-        a = _solid(obj.mesh)
+        a = to_manifold(obj.mesh)
         shared = float((a ^ union).volume())
         if shared < MIN_OVERLAP:
             continue
