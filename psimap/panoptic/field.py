@@ -77,27 +77,23 @@ def id_to_column(ids: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
 
 
 def thing_masks(instance: torch.Tensor, semantic: torch.Tensor | None, ids: torch.Tensor,
-                thing: torch.Tensor, min_pixels: int, with_class: bool = False):
-    """Binary masks [M, H, W] of the frame's thing instances (stuff is semantic only).
-
-    A mask's class is the majority class of its pixels; without semantics every mask counts.
-    with_class: also return each kept mask's class column [M] long (-1 without semantics).
+                thing: torch.Tensor, min_pixels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Binary masks [M, H, W] of the frame's thing instances (stuff is semantic only), and each
+    mask's class column [M] long: the majority class of its pixels (-1 without semantics, when
+    every mask counts).
     """
-    masks, mids = masks_from_ids(instance, min_pixels=min_pixels)
+    masks, _ = masks_from_ids(instance, min_pixels=min_pixels)
     if masks.shape[0] == 0 or semantic is None or ids.numel() == 0:
-        return (masks, torch.full((masks.shape[0],), -1, dtype=torch.long)) if with_class else masks
+        return masks, torch.full((masks.shape[0],), -1, dtype=torch.long)
     cols = id_to_column(ids, semantic)
-    keep, major = [], []
+    major = []
     for m in masks:
         c = cols[m]
         c = c[c >= 0]
-        j = int(torch.bincount(c, minlength=ids.numel()).argmax()) if c.numel() else -1
-        keep.append(j >= 0 and bool(thing[j]))
-        major.append(j)
-    keep = torch.tensor(keep, dtype=torch.bool)
-    if with_class:
-        return masks[keep], torch.tensor(major, dtype=torch.long)[keep]
-    return masks[keep]
+        major.append(int(torch.bincount(c, minlength=ids.numel()).argmax()) if c.numel() else -1)
+    major = torch.tensor(major, dtype=torch.long)
+    keep = (major >= 0) & thing[major.clamp_min(0)]
+    return masks[keep], major[keep]
 
 
 def backproject(depth: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -129,7 +125,7 @@ def init_queries(frames, classes, cfg: PanopticConfig, scene_scale: float,
         sem = None if fr.semantic is None else torch.as_tensor(np.asarray(fr.semantic, dtype=np.int64))
         min_px = max(1, int(cfg.min_mask_fraction * inst.numel()))
         depth = torch.as_tensor(np.asarray(fr.depth, dtype=np.float32))
-        for m in thing_masks(inst, sem, ids, thing, min_px):
+        for m in thing_masks(inst, sem, ids, thing, min_px)[0]:
             pts = backproject(depth, torch.as_tensor(fr.K), torch.as_tensor(fr.c2w), m)
             if pts.shape[0] >= 3:
                 groups.append(pts)
@@ -282,8 +278,7 @@ class PanopticField(nn.Module):
         l_ins = zero
         if instance is not None and q > 0:
             min_px = max(1, int(cfg.min_mask_fraction * hw))
-            masks, mask_cls = thing_masks(instance, semantic, self.class_ids, self.class_thing, min_px,
-                                          with_class=True)
+            masks, mask_cls = thing_masks(instance, semantic, self.class_ids, self.class_thing, min_px)
             info["masks"] = int(masks.shape[0])
             with torch.no_grad():
                 # a query is "seen" by this frame when it owns (p > 0.5) at least a small mask here.
