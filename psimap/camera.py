@@ -34,8 +34,13 @@ def supersample_intrinsics(K, ss: int) -> np.ndarray:
     """K [3, 3] of an image with ss x ss samples per pixel of the image K describes.
 
     Pixel centres are integers (OpenCV), so the samples of pixel x sit at x + (i + 0.5) / ss - 0.5,
-    i.e. at X = ss x + (ss - 1) / 2 in the fine image.
+    i.e. at X = ss x + (ss - 1) / 2 in the fine image. ss must be a positive integer (PsimapError).
     """
+    from psimap import PsimapError
+
+    if int(ss) != ss or ss < 1:
+        raise PsimapError(f"supersample must be a positive integer, got {ss}")
+    ss = int(ss)
     K = np.array(K, dtype=np.float64)
     K[:2, :] *= ss
     K[:2, 2] += 0.5 * (ss - 1)

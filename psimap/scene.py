@@ -14,7 +14,7 @@ from psimap import PsimapError
 
 # Rays per pixel side when meshing the rendered views. Measured on the demo scene (seed 0, 450
 # steps): ss 1 / 2 / 3 -> Chamfer-L1 1.66 / 1.30 / 1.20 cm, F1@5cm 0.958 / 0.965 / 0.965, rendering +
-# fusion 6 / 9 / 14 s; 2 takes most of the gain (benchmarks/geometry.py).
+# fusion 6 / 9 / 14 s; 2 takes most of the gain (RESULTS.md, "rays per pixel when meshing").
 MESH_SUPERSAMPLE = 2
 
 
@@ -162,9 +162,6 @@ class Scene:
 
         from psimap.camera import supersample_intrinsics
 
-        ss = int(supersample)
-        if ss < 1 or ss != supersample:
-            raise PsimapError(f"supersample must be a positive integer, got {supersample}")
         idx = range(len(self.cameras["names"])) if cameras is None else cameras
         depths, colors, Ks, c2ws = [], [], [], []
         threads = torch.get_num_threads()
@@ -174,8 +171,8 @@ class Scene:
             outs = []
             for i in tqdm(list(idx), desc="render", disable=not progress, leave=False):
                 K, c2w, w, h = self.camera(int(i))
-                K = supersample_intrinsics(K, ss)
-                outs.append((K, c2w, self.render(K, c2w, w * ss, h * ss)))
+                K = supersample_intrinsics(K, supersample)
+                outs.append((K, c2w, self.render(K, c2w, w * int(supersample), h * int(supersample))))
         finally:
             torch.set_num_threads(threads)
         for K, c2w, out in outs:

@@ -71,8 +71,8 @@ def _argmax_ids(scene, groups: list[np.ndarray], viewmat, K, width: int, height:
     label = [torch.zeros((height, width), dtype=torch.long) for _ in groups]
     alpha = None
     n = int(s["means"].shape[0])
-    if ss > 1:
-        K = torch.as_tensor(supersample_intrinsics(K.numpy(), ss), dtype=K.dtype)
+    K = torch.as_tensor(supersample_intrinsics(K.numpy(), ss), dtype=K.dtype)    # validates ss
+    ss = int(ss)
     for start in range(0, int(offsets[-1]), CHANNELS_PER_PASS):
         stop = min(int(offsets[-1]), start + CHANNELS_PER_PASS)
         # Surfels without a channel in this chunk still occlude (zero feature rows).
@@ -127,12 +127,7 @@ def render_labels(scene, K, c2w, width: int, height: int, topk: int | None = Non
     Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32)
     inst_ids = scene.instance_ids().numpy().astype(np.int64)
     sem_ids = scene.semantic_ids().numpy().astype(np.int64)
-    if supersample is None:
-        ss = DEFAULT_SUPERSAMPLE
-    elif int(supersample) != supersample or supersample < 1:
-        raise PsimapError(f"render_labels: supersample must be a positive integer, got {supersample}")
-    else:
-        ss = int(supersample)
+    ss = DEFAULT_SUPERSAMPLE if supersample is None else supersample
     (inst, sem), alpha = _argmax_ids(scene, [inst_ids, sem_ids], viewmat, Kt, width, height, topk, backend, ss)
     # One class per instance, as a COCO segment has: a pixel whose instance and class channels
     # were won by different surfels (a bottle's limb over the table) would otherwise form a
