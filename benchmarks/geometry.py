@@ -7,6 +7,8 @@ tables to benchmarks/RESULTS.md.
 
     python benchmarks/geometry.py                 # demo size + two other sizes + chess
     python benchmarks/geometry.py --quick         # small scene only, few iterations
+    python benchmarks/geometry.py --sizes 60x160x120 --seeds 0 1 2 --no-chess --no-curves
+                                                  # per-seed rows + mean ± std over seeds
 """
 from __future__ import annotations
 
@@ -25,22 +27,83 @@ OUT = ROOT / "bench_out"
 CHESS = ROOT.parent / "shared" / "data" / "7scenes-chess"
 
 
+RAW, PSIMAP, NO_PRIOR = "TSDF of raw depth", "psimap (SOGMM prior)", "2DGS losses, no prior"
+METRIC_COLS = ("accuracy (cm)", "completeness (cm)", "Chamfer-L1 (cm)", "F1@5cm", "wall (s)", "CPU (s)",
+               "surfels")
+
+
+def _row(label, seed, method, m, wall, cpu, surfels) -> dict:
+    """One result: scene label, seed, method, metrics (cm), wall / CPU seconds (train + mesh; raw
+    TSDF: fusion), surfel count (None for the raw TSDF)."""
+    return {"scene": label, "seed": seed, "method": method, "accuracy (cm)": m["accuracy"] * 100,
+            "completeness (cm)": m["completeness"] * 100, "Chamfer-L1 (cm)": m["chamfer_l1"] * 100,
+            "F1@5cm": m["f1"], "wall (s)": wall, "CPU (s)": cpu, "surfels": surfels}
+
+
+def per_seed_table(rows) -> str:
+    return markdown_table(["scene", "seed", "method", *METRIC_COLS],
+                          [[r["scene"], r["seed"], r["method"]] +
+                           [("-" if r[c] is None else r[c]) for c in METRIC_COLS] for r in rows])
+
+
+def mean_table(rows) -> tuple[str, dict]:
+    """Mean +- std over seeds per (scene, method); also returns {(scene, method): {col: mean}}."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["method"]), []).append(r)
+    out, means = [], {}
+    for (scene, method), rs in groups.items():
+        cells, means[(scene, method)] = [], {}
+        for c in METRIC_COLS:
+            v = np.array([r[c] for r in rs if r[c] is not None], dtype=float)
+            if v.size == 0:
+                cells.append("-")
+                continue
+            means[(scene, method)][c] = float(v.mean())
+            prec = 4 if c == "F1@5cm" else (0 if c in ("surfels",) else 3 if "(cm)" in c else 1)
+            cells.append(f"{v.mean():.{prec}f} ± {v.std(ddof=1) if v.size > 1 else 0.0:.{prec}f}")
+        out.append([scene, len(rs), method] + cells)
+    return markdown_table(["scene", "seeds", "method", *METRIC_COLS], out), means
+
+
+def verdict(means) -> list[str]:
+    """Per scene: does psimap's mean Chamfer / F1 beat both baselines."""
+    lines = []
+    for scene in dict.fromkeys(k[0] for k in means):
+        p, r, n = (means.get((scene, k), {}) for k in (PSIMAP, RAW, NO_PRIOR))
+        if not (p and r and n):
+            continue
+        ch = p["Chamfer-L1 (cm)"] < min(r["Chamfer-L1 (cm)"], n["Chamfer-L1 (cm)"])
+        f1 = p["F1@5cm"] > max(r["F1@5cm"], n["F1@5cm"])
+        lines.append(f"{scene}: psimap mean Chamfer-L1 {p['Chamfer-L1 (cm)']:.3f} cm vs raw TSDF "
+                     f"{r['Chamfer-L1 (cm)']:.3f} / no prior {n['Chamfer-L1 (cm)']:.3f} "
+                     f"({'better than both' if ch else 'NOT better than both'}); F1 {p['F1@5cm']:.4f} vs "
+                     f"{r['F1@5cm']:.4f} / {n['F1@5cm']:.4f} ({'better than both' if f1 else 'NOT better than both'}).")
+    return lines
+
+
 def _geo(mesh, data, samples):
     from psimap.metrics.evaluate import evaluate_geometry
 
     return evaluate_geometry(mesh, data, samples=samples)
 
 
+def fuse_scene(depths, Ks, c2ws, **kw):
+    """fuse_tsdf with the whole-scene cleaning Scene.mesh uses (the baselines mesh like psimap)."""
+    from psimap.geometry.tsdf import SCENE_KEEP_FRACTION, SCENE_MIN_COMPONENT_VOXELS, fuse_tsdf
+
+    return fuse_tsdf(depths, Ks, c2ws, keep_fraction=SCENE_KEEP_FRACTION,
+                     min_component_voxels=SCENE_MIN_COMPONENT_VOXELS, **kw)
+
+
 def raw_tsdf(data, voxel=None):
     """TSDF of the observed (noisy) depth and colour of every frame."""
     from psimap.data import load
-    from psimap.geometry.tsdf import fuse_tsdf
-
     seq = load(data)
     fr = [seq[i] for i in range(len(seq))]
     t = time.perf_counter()
-    mesh = fuse_tsdf([f.depth for f in fr], [f.K for f in fr], [f.c2w for f in fr],
-                     colors=[f.rgb for f in fr], voxel_size=voxel)
+    mesh = fuse_scene([f.depth for f in fr], [f.K for f in fr], [f.c2w for f in fr],
+                      colors=[f.rgb for f in fr], voxel_size=voxel)
     return mesh, time.perf_counter() - t
 
 
@@ -59,11 +122,10 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
 
     mesh, secs = raw_tsdf(data)
     m = _geo(mesh, data, samples)
-    rows.append([label, "TSDF of raw depth", m["accuracy"] * 100, m["completeness"] * 100,
-                 m["chamfer_l1"] * 100, m["f1"], secs, "-"])
+    rows.append(_row(label, seed, RAW, m, secs, secs, None))
     print(rows[-1], flush=True)
 
-    for name, prior in (("psimap (SOGMM prior)", True), ("2DGS losses, no prior", False)):
+    for name, prior in ((PSIMAP, True), (NO_PRIOR, False)):
         snaps = {}
         marks = set(np.unique(np.linspace(iters / 5, iters, 5).round().astype(int)).tolist()) if (
             curves and prior) else set()
@@ -77,13 +139,14 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
         scene = train(str(data), cfg, callback=cb, log=lambda s: print("   ", s, flush=True))
         t_train = time.perf_counter() - t
         t = time.perf_counter()
+        c = time.process_time()
         mesh = scene.mesh()
-        t_mesh = time.perf_counter() - t
+        t_mesh, c_mesh = time.perf_counter() - t, time.process_time() - c
         m = _geo(mesh, data, samples)
-        rows.append([label, name, m["accuracy"] * 100, m["completeness"] * 100, m["chamfer_l1"] * 100,
-                     m["f1"], t_train + t_mesh, len(scene)])
+        rows.append(_row(label, seed, name, m, t_train + t_mesh,
+                         scene.metrics["cpu_seconds"] + c_mesh, len(scene)))
         print(rows[-1], f"(train {t_train:.1f} s, mesh {t_mesh:.1f} s)", flush=True)
-        curve_data.setdefault("densify", []).append((label, name, scene.metrics.get("densify", [])))
+        curve_data.setdefault("densify", []).append((f"{label}, seed {seed}", name, scene.metrics.get("densify", [])))
         if curves and prior:
             it_curve = []
             for step in sorted(snaps):
@@ -95,11 +158,9 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
             base = mesh.metadata["tsdf"]["voxel_size"]
             vox_curve = []
             depths = scene.rendered_depths()
-            from psimap.geometry.tsdf import fuse_tsdf
-
             for f in (0.5, 0.75, 1.0, 1.5, 2.0):
                 t = time.perf_counter()
-                vm = fuse_tsdf(depths[0], depths[2], depths[3], colors=depths[1], voxel_size=base * f)
+                vm = fuse_scene(depths[0], depths[2], depths[3], colors=depths[1], voxel_size=base * f)
                 tv = time.perf_counter() - t
                 mm = _geo(vm, data, samples)
                 vox_curve.append((base * f, tv, mm["f1"], mm["chamfer_l1"]))
@@ -145,10 +206,8 @@ def run_chess(iters, seed, n_frames, rows):
     sub = FrameSequence(loader=lambda i: seq[int(idx[i])], count=len(idx), classes=seq.classes,
                         root=str(CHESS))
     frames = [sub[i] for i in range(len(sub))]
-    from psimap.geometry.tsdf import fuse_tsdf
-
     t = time.perf_counter()
-    raw = fuse_tsdf([f.depth for f in frames], [f.K for f in frames], [f.c2w for f in frames],
+    raw = fuse_scene([f.depth for f in frames], [f.K for f in frames], [f.c2w for f in frames],
                     colors=[f.rgb for f in frames])
     t_raw = time.perf_counter() - t
     t = time.perf_counter()
@@ -194,6 +253,8 @@ def main(argv=None):
     ap.add_argument("--iters", type=int, default=0, help="training iterations (0 = config default)")
     ap.add_argument("--sizes", default="", help="comma list FRAMESxWxH (default: demo size and two others; none = skip)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+                    help="several scene / training seeds: per-seed rows plus a mean ± std table")
     ap.add_argument("--samples", type=int, default=100_000, help="max points sampled per mesh")
     ap.add_argument("--chess-frames", type=int, default=60)
     ap.add_argument("--no-chess", action="store_true")
@@ -202,6 +263,8 @@ def main(argv=None):
     ap.add_argument("--default-train", action="store_true",
                     help="only time the default training (panoptic phase included) at the first size")
     args = ap.parse_args(argv)
+    import os
+
     from psimap.train.config import TrainConfig
 
     OUT.mkdir(exist_ok=True)
@@ -218,20 +281,28 @@ def main(argv=None):
         if not args.no_append:
             append_results("Geometry: default demo-size training time", table, note)
         return
+    seeds = args.seeds if args.seeds else [args.seed]
     rows, curves = [], {}
+    load_start = os.getloadavg()
     for k, s in enumerate([] if sizes == "none" else sizes.split(",")):
         f, w, h = (int(v) for v in s.split("x"))
-        run_size(f"{f} frames {w}x{h}", f, w, h, iters, args.seed, args.samples,
-                 k == 0 and not args.no_curves, rows, curves)
+        for j, seed in enumerate(seeds):
+            run_size(f"{f} frames {w}x{h}", f, w, h, iters, seed, args.samples,
+                     k == 0 and j == 0 and not args.no_curves, rows, curves)
     plot_curves(curves)
-    header = ["scene", "method", "accuracy (cm)", "completeness (cm)", "Chamfer-L1 (cm)", "F1@5cm",
-              "time (s)", "surfels"]
-    table = markdown_table(header, rows)
-    import os
-
-    notes = [f"{iters} training iterations, seed {args.seed}; time = training + mesh extraction (TSDF: "
-             f"fusion only; panoptic phase off); F1 at 5 cm, completeness on camera-seen GT (DESIGN.md metrics). Load "
-             f"average at the end {os.getloadavg()[0]:.1f} on 2 shared cores: wall times are noisy."]
+    table = per_seed_table(rows)
+    mtable, means = mean_table(rows) if len(seeds) > 1 else ("", {})
+    load_end = os.getloadavg()
+    notes = [f"{iters} training iterations, seed(s) {', '.join(map(str, seeds))}; scenes from "
+             f"`psimap.data.synthetic.generate(seed)`; wall / CPU = training + mesh extraction (raw TSDF: "
+             f"fusion only; panoptic phase off; CPU = process time); F1 at 5 cm, completeness on camera-seen "
+             f"GT (DESIGN.md metrics). Load average (1 / 5 / 15 min) at the start "
+             f"{' / '.join(f'{v:.1f}' for v in load_start)}, at the end "
+             f"{' / '.join(f'{v:.1f}' for v in load_end)} on 2 shared cores: wall times are noisy, "
+             f"compare CPU seconds."]
+    if mtable:
+        notes.append("Mean ± std (sample std) over the seeds:\n\n" + mtable)
+        notes.extend(verdict(means))
     if curves.get("iters"):
         notes.append("Iterations vs F1 / time (first scene): " + ", ".join(
             f"{s}: F1 {f1:.3f} @ {t:.0f} s" for s, t, f1, _ in curves["iters"]) +
@@ -245,7 +316,7 @@ def main(argv=None):
             f"{r['step']}: {r['cloned']} / {r['split']} / {r['pruned']} -> {r['surfels']}" for r in rounds))
     chess_rows = []
     if not (args.quick or args.no_chess) and CHESS.exists():
-        run_chess(iters, args.seed, args.chess_frames, chess_rows)
+        run_chess(iters, seeds[0], args.chess_frames, chess_rows)
     if not rows:
         pass
     elif args.no_append:

@@ -185,16 +185,20 @@ class Scene:
         return depths, colors, Ks, c2ws
 
     def mesh(self, *, cameras: Sequence[int] | None = None, voxel_size: float | None = None,
-             depth: str = "median", keep_fraction: float = 0.05, supersample: int = MESH_SUPERSAMPLE,
+             depth: str = "median", keep_fraction: float | None = None,
+             min_component_voxels: float | None = None, supersample: int = MESH_SUPERSAMPLE,
              progress: bool = False):
         """Whole-scene mesh: TSDF fusion of the rendered depth + colour of the training views.
 
         The views are rendered with `supersample` rays per pixel side (the map is continuous: finer
         rays halve the ~1 px silhouette bleed of the splats' low-pass filter); the voxel size still
-        follows the views' own pixel footprint. Returns trimesh.Trimesh in metres, world frame, with
-        vertex colours.
+        follows the views' own pixel footprint. Cleaning (None = the whole-scene defaults
+        `SCENE_KEEP_FRACTION` / `SCENE_MIN_COMPONENT_VOXELS` of psimap.geometry.tsdf): components
+        below keep_fraction of the largest or below min_component_voxels voxel faces of area are
+        dropped. Returns trimesh.Trimesh in metres, world frame, with vertex colours.
         """
-        from psimap.geometry.tsdf import derive_params, fuse_tsdf
+        from psimap.geometry.tsdf import (SCENE_KEEP_FRACTION, SCENE_MIN_COMPONENT_VOXELS, derive_params,
+                                          fuse_tsdf)
 
         if len(self.cameras["names"]) == 0:
             raise PsimapError("scene has no cameras to render for meshing")
@@ -208,7 +212,9 @@ class Scene:
             idx = range(len(self.cameras["names"])) if cameras is None else cameras
             voxel_size = derive_params(coarse, [self.camera(int(i))[0] for i in idx], c2ws).voxel_size
         return fuse_tsdf(depths, Ks, c2ws, colors=colors, voxel_size=voxel_size,
-                         keep_fraction=keep_fraction, progress=progress)
+                         keep_fraction=SCENE_KEEP_FRACTION if keep_fraction is None else keep_fraction,
+                         min_component_voxels=(SCENE_MIN_COMPONENT_VOXELS if min_component_voxels is None
+                                               else min_component_voxels), progress=progress)
 
     def objects(self, **kw):
         """Per-object meshes (`psimap.exporters.objects.extract_objects(scene, **kw)`)."""

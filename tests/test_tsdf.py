@@ -124,6 +124,36 @@ def test_clean_components_removes_floaters():
     out = clean_components(m, 0.5)
     assert len(out.faces) == len(big.faces)
     assert len(clean_components(m, 0.01).faces) == len(m.faces)
+    # absolute floor: the small sphere (area 0.031 m^2) goes below 0.05 m^2 and stays above 0.02
+    assert len(clean_components(m, 0.0, min_area=0.05).faces) == len(big.faces)
+    assert len(clean_components(m, 0.0, min_area=0.02).faces) == len(m.faces)
+    assert len(clean_components(m, 0.0, min_area=100.0).faces) == 0
+
+
+def test_scene_mesh_keeps_a_floating_part_of_a_large_scene():
+    """A table top whose thin legs do not mesh floats: a separate component with ~2 % of the room's
+    triangles. The whole-scene cleaning judges components by their own area, so it stays (the old
+    5 %-of-largest rule dropped it, and everything on it, on the seed-1 demo scene)."""
+    from psimap.scene import scene_from_meshes
+
+    floor = trimesh.creation.box((4.0, 4.0, 0.02))
+    floor.apply_translation((0, 0, -0.01))
+    top = trimesh.creation.box((0.5, 0.5, 0.03))
+    top.apply_translation((0, 0, 0.5))
+    cams = ring_cameras(8, heights=(1.4,), target=(0, 0, 0.3))
+    cameras = {"K": np.stack([K] * len(cams)), "c2w": np.stack(cams), "width": W, "height": H,
+               "names": [f"c{i}" for i in range(len(cams))]}
+    scene = scene_from_meshes([floor, top], [0, 1], [1, 2], [], cameras)
+    top_pts = trimesh.sample.sample_surface(top, 2000, seed=0)[0]
+    top_pts = top_pts[top_pts[:, 2] > 0.51]                       # the seen upper face
+
+    def top_recall(mesh):
+        d = cKDTree(trimesh.sample.sample_surface(mesh, 200_000, seed=1)[0]).query(top_pts)[0]
+        return float((d < 0.05).mean())
+
+    kept, old = scene.mesh(), scene.mesh(keep_fraction=0.05, min_component_voxels=0.0)
+    assert top_recall(kept) > 0.95, top_recall(kept)
+    assert top_recall(old) < 0.05, top_recall(old)          # the relative rule drops it
 
 
 def test_scene_mesh_of_surfels_on_known_meshes(two_objects):

@@ -77,8 +77,19 @@ def derive_params(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: 
     return TSDFParams(float(voxel_size), float(trunc), float(depth_max))
 
 
-def clean_components(mesh, keep_fraction: float = 0.05):
-    """Keep connected components with at least `keep_fraction` of the largest's triangles.
+# Whole-scene cleaning (Scene.mesh and the raw-depth baseline): a scene is many separate objects, so
+# a component is judged by its own size, not against the largest one. Measured on the seed-1 demo
+# scene: the 5 %-of-largest rule dropped the table top (its thin legs do not mesh, so it floats;
+# 1.6 % of the room's triangles) and everything on it: completeness 7.01 -> 6.28 cm without it.
+SCENE_KEEP_FRACTION = 0.0
+# Components smaller than this many voxel faces (2 x 2 voxels) cannot be told from a noise blob at
+# the fusion's resolution and are dropped.
+SCENE_MIN_COMPONENT_VOXELS = 4.0
+
+
+def clean_components(mesh, keep_fraction: float = 0.05, min_area: float = 0.0):
+    """Keep connected components with at least `keep_fraction` of the largest's triangles and at
+    least `min_area` (m^2) of surface.
 
     keep_fraction = 1 keeps only the largest component. mesh: trimesh.Trimesh; returns a new one.
     """
@@ -92,9 +103,14 @@ def clean_components(mesh, keep_fraction: float = 0.05):
     if keep_fraction >= 1.0:
         keep = np.zeros_like(keep)
         keep[int(np.argmax(counts))] = True
+    if min_area > 0:
+        areas = np.bincount(labels, weights=mesh.area_faces, minlength=len(counts))
+        keep &= areas >= min_area
     face_mask = keep[labels]
     if face_mask.all():
         return mesh
+    if not face_mask.any():
+        return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64))
     out = mesh.submesh([np.nonzero(face_mask)[0]], append=True, repair=False)
     return out
 
@@ -103,14 +119,16 @@ def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequ
               colors: Sequence[np.ndarray] | None = None, masks: Sequence[np.ndarray] | None = None,
               voxel_size: float | None = None, trunc: float | None = None,
               depth_max: float | None = None, keep_fraction: float = 0.05,
-              weight_threshold: float = 1.0, progress: bool = False):
+              min_component_voxels: float = 0.0, weight_threshold: float = 1.0,
+              progress: bool = False):
     """Fuse depth maps into a mesh; returns trimesh.Trimesh (metres, world frame, vertex colours).
 
     depths: list of [H,W] float32 metres (0 / non-finite = invalid); Ks: list of [3,3];
     c2ws: list of [4,4] camera-to-world OpenCV; colors: optional list of [H,W,3] float in [0,1]
     (or uint8); masks: optional list of [H,W] bool — only True pixels are fused.
     Parameters left None follow from the data (`derive_params`). Components smaller than
-    `keep_fraction` of the largest are removed. An empty mesh is returned when nothing was fused.
+    `keep_fraction` of the largest, or with less area than `min_component_voxels` voxel faces, are
+    removed. An empty mesh is returned when nothing was fused.
     """
     import open3d as o3d
     import open3d.core as o3c
@@ -187,7 +205,7 @@ def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequ
     if len(mesh.faces):
         mesh.merge_vertices()
         mesh.remove_unreferenced_vertices()
-        mesh = clean_components(mesh, keep_fraction)
+        mesh = clean_components(mesh, keep_fraction, min_component_voxels * params.voxel_size**2)
     mesh.metadata["tsdf"] = {"voxel_size": params.voxel_size, "trunc": params.trunc,
                              "depth_max": params.depth_max}
     return mesh
