@@ -162,6 +162,63 @@ def _inside_convex(hull, pts: np.ndarray, margin: float = 1e-9) -> np.ndarray:
     return ((pts @ n.T) - np.einsum("fd,fd->f", n, o) <= margin).all(axis=1)
 
 
+# ---------------------------------------------------------------- neighbours' colliders
+def convex_overlap(a, b) -> tuple[float, np.ndarray]:
+    """(depth, axis) of two convex meshes by the separating-axis test over both face normals:
+    depth <= 0 means separated; else the smallest overlap found and the unit axis along which `a`
+    leaves `b` (pointing from b towards a). Edge-edge axes are left out, so depth can exceed the
+    true penetration (never miss it: a zero overlap on a face axis proves separation)."""
+    va, vb = np.asarray(a.vertices, np.float64), np.asarray(b.vertices, np.float64)
+    axes = np.concatenate([np.asarray(a.face_normals, np.float64), np.asarray(b.face_normals, np.float64)])
+    pa, pb = va @ axes.T, vb @ axes.T                         # [Va, A], [Vb, A]
+    up = pb.max(0) - pa.min(0)                                # a pushed along +axis
+    down = pa.max(0) - pb.min(0)                              # a pushed along -axis
+    k_up, k_down = int(np.argmin(up)), int(np.argmin(down))
+    if up[k_up] <= down[k_down]:
+        return float(up[k_up]), axes[k_up]
+    return float(down[k_down]), -axes[k_down]
+
+
+def clip_convex(part, obstacles, clearance: float = 5e-4, max_penetration: float = 1e-3):
+    """`part` (convex trimesh) cut back, one plane per obstacle it enters by more than
+    max_penetration, to `clearance` outside that obstacle along the axis of least overlap: the
+    result stays convex and clears every obstacle. None when nothing of it is left."""
+    for ob in obstacles:
+        depth, axis = convex_overlap(part, ob)
+        if depth <= max_penetration:
+            continue
+        level = float((np.asarray(ob.vertices, np.float64) @ axis).max()) + clearance
+        part = _clip_halfspace(part, axis, level)
+        if part is None or part.volume <= 0:
+            return None
+    return part
+
+
+def _clip_halfspace(part, normal: np.ndarray, level: float):
+    """Convex `part` ∩ {x : normal·x >= level} as a convex hull (None when no volume is left): the
+    kept vertices plus where the part's edges cross the plane."""
+    import trimesh
+
+    v = np.asarray(part.vertices, np.float64)
+    h = v @ normal - level                                   # [V] signed height over the plane
+    e = np.asarray(part.edges_unique)
+    ha, hb = h[e[:, 0]], h[e[:, 1]]
+    cross = (ha > 0) != (hb > 0)
+    t = (ha[cross] / (ha[cross] - hb[cross]))[:, None]
+    ring = v[e[cross, 0]] + t * (v[e[cross, 1]] - v[e[cross, 0]])
+    pts = np.concatenate([v[h >= 0], ring])
+    if len(pts) < 4:
+        return None
+    try:
+        return trimesh.convex.convex_hull(pts)
+    except Exception:        # a sliver: qhull finds no volume
+        return None
+
+
+def penetrates(parts, obstacles, max_penetration: float = 1e-3) -> bool:
+    return any(convex_overlap(p, ob)[0] > max_penetration for p in parts for ob in obstacles)
+
+
 # CoACD settings chosen for speed on a 2-core CPU (benchmarks/export.py, collider table): the
 # decimated copy and the short tree search cost ~0.1-1 s per call where the library defaults
 # (resolution 2000, 150 MCTS iterations, preprocessing) cost tens of seconds; the fit is measured
@@ -194,13 +251,17 @@ def _coacd(mesh, threshold: float, max_hulls: int, seed: int, max_faces: int = C
 def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int = 8,
                        allow_primitives: bool = True, samples: int = 4000, seed: int = 0,
                        coacd_thresholds: tuple[float, ...] = (0.3, 0.15, 0.08),
-                       time_budget: float = 4.0) -> Collision:
+                       time_budget: float = 4.0, obstacles=(), max_penetration: float = 1e-3) -> Collision:
     """The cheapest collider within `tolerance` (metres) of `mesh` (watertight trimesh, world frame).
 
     Cascade: primitive -> one convex hull -> CoACD, the last only when the hull misses the
     tolerance, with ever finer concavity thresholds while `time_budget` seconds (per object) last.
     When nothing fits, the best collider found (at most `max_hulls` hulls) is returned with its
     measured error; the report shows it.
+    obstacles: convex trimesh parts of neighbours' colliders (world frame) this one must not enter
+    by more than max_penetration: a primitive that would is not a candidate, hulls are cut back
+    (`clip_convex`). Two colliders each within tolerance of meshes that touch can overlap by the
+    sum of the tolerances, and the simulation throws them apart.
     """
     import time
 
@@ -222,6 +283,8 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
             err = _two_sided(mesh_pts, _mesh_points(pm, samples, seed + 1), mesh_dist,
                              lambda p: _primitive_sdf(kind, size, T, p))
             vol = float(pm.volume)
+            if obstacles and err <= tol and penetrates([pm], obstacles, max_penetration):
+                continue
             if err <= tol and (best is None or vol < best[0]):
                 best = (vol, kind, size, T, err)
         if best is not None:
@@ -249,7 +312,24 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
         coll_to_mesh = mesh_dist(union_pts).max() if len(union_pts) else 0.0
         return float(max(d.max(), coll_to_mesh))
 
-    hull = limit_hull_vertices(mesh)
+    def clipped(parts):
+        if not obstacles:
+            return parts
+        out = []
+        for p in parts:
+            for _ in range(3):      # a cut adds vertices; reducing them can move the cut a little
+                p = clip_convex(p, obstacles, max_penetration=max_penetration)
+                if p is None or len(p.vertices) <= MAX_HULL_VERTICES:
+                    break
+                p = limit_hull_vertices(p)
+            if p is not None:
+                out.append(p)
+        return out
+
+    hull = clipped([limit_hull_vertices(mesh)])
+    if not hull:        # the neighbours' colliders cover it: keep its own hull (reported error)
+        hull = [limit_hull_vertices(mesh)]
+    hull = hull[0]
     err = parts_error([hull])
     if err <= tol:
         return Collision("hull", err, tol, parts=[hull])
@@ -257,7 +337,7 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
     for thr in coacd_thresholds:
         if time.perf_counter() - t_start > time_budget:
             break
-        parts = [limit_hull_vertices(p) for p in _coacd(mesh, thr, max_hulls, seed)]
+        parts = clipped([limit_hull_vertices(p) for p in _coacd(mesh, thr, max_hulls, seed)])
         if not parts:
             continue
         err = parts_error(parts)

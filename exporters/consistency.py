@@ -141,3 +141,14 @@ def cut_by_colliders(obj, finished) -> None:
                    f"({shared * 1e6:.1f} cm3)", f"inside the collider of {other.name}")
         if obj.skipped:
             return
+
+
+def neighbour_collider_parts(obj, finished, pad: float = 0.05) -> list:
+    """Convex collider parts of the finished objects whose boxes come within `pad` of obj's: what
+    obj's own collider must not enter (collision.collision_geometry's obstacles)."""
+    if obj.skipped:
+        return []
+    return [p for other in finished
+            if not other.skipped and other.collision is not None
+            and _boxes_overlap(other.mesh.bounds, obj.mesh.bounds, pad=pad)
+            for p in other.collision.parts if len(p.faces) >= 4]

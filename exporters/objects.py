@@ -149,9 +149,11 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
 
 def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimation_budget: float | None = None,
                   collision_tolerance: float | None = None, max_hulls: int = 8, densities: dict | None = None,
-                  texel: float = 0.001, resolution: float | None = None, seed: int = 0) -> SceneObject:
+                  texel: float = 0.001, resolution: float | None = None, seed: int = 0,
+                  obstacles=()) -> SceneObject:
     """Steps 4-7 on a prepared solid: decimation to an error budget, mass properties, collider,
-    UV + texture. Skipped objects come back unchanged."""
+    UV + texture. Skipped objects come back unchanged. obstacles: convex collider parts of
+    neighbours that the collider must not enter."""
     from psimap.exporters.collision import collision_geometry, default_tolerance
     from psimap.exporters.decimate import decimate_to_budget, default_budget
     from psimap.exporters.physics import mass_properties
@@ -183,7 +185,8 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
         obj.skipped = f"physics: {e}"
         return obj
     t0 = time.perf_counter()
-    obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed)
+    obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed,
+                                       obstacles=obstacles)
     obj.timings["collision_s"] = time.perf_counter() - t0
     if obj.collision.kind == "sphere":
         # a sphere collider means the object is a ball: its COM is the centre (a reconstruction's
@@ -391,7 +394,8 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
     import trimesh
     from tqdm import tqdm
 
-    from psimap.exporters.consistency import cut_by_colliders, floor_from_background, make_consistent
+    from psimap.exporters.consistency import (cut_by_colliders, floor_from_background, make_consistent,
+                                              neighbour_collider_parts)
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.solidify import disc_points
 
@@ -442,7 +446,8 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
         t0 = time.perf_counter()
         cut_by_colliders(o, finished)
         timings["consistency_s"] += time.perf_counter() - t0
-        finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed, **kw)
+        finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed,
+                      obstacles=neighbour_collider_parts(o, finished), **kw)
         finished.append(o)
     background = inst.background
     # labels too big to be objects stay in the scene as static background (what they covered is

@@ -3,8 +3,10 @@
 1. Load with `mujoco.MjModel.from_xml_path`: a failed load is an error (PsimapError), never a warning.
 2. Initial penetration: after `mj_forward`, the deepest contact (min `contact.dist`) must be
    >= -max_penetration. With `resolve=True`, penetrating free bodies are nudged up along the support
-   normal (+z, gravity is -z) by their depth, the file is rewritten atomically, and the nudges are
-   reported.
+   normal (+z, gravity is -z) by their depth, then bodies hovering up to `max_gap` above their
+   support are lowered onto it (the mirror case: a reconstruction leaves an object's underside a
+   voxel above the table, and it drops in the settle); the file is rewritten atomically and the
+   nudges (signed, metres along +z) are reported.
 3. Settle: simulate `duration` seconds; bodies resting at t = 0 (in contact) must move less than
    `max_drift`; bodies with no support within `support_gap` at t = 0 must not fall (a floating
    object is a broken scene, not a settle); no NaN; no explosion (speed or height beyond reason).
@@ -58,10 +60,13 @@ def _penetrations(model, data) -> tuple[float, dict[int, float], set[int]]:
 
 
 def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rounds: int = 20,
-                        margin: float = 2e-4) -> dict[str, float]:
-    """Nudge penetrating free bodies up (+z) until min contact.dist >= -max_penetration.
+                        margin: float = 2e-4, max_gap: float = 0.02) -> dict[str, float]:
+    """Nudge penetrating free bodies up (+z) until min contact.dist >= -max_penetration, then lower
+    free bodies that hover more than max_penetration and at most `max_gap` above their support
+    onto it (`lower_onto_supports`).
 
-    Rewrites `path` atomically (body `pos` attributes). Returns {body name: total nudge in metres}.
+    Rewrites `path` atomically (body `pos` attributes). Returns {body name: total signed nudge in
+    metres along +z}.
     """
     import mujoco
 
@@ -102,12 +107,71 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
             pos[2] += depth + margin
             el.set("pos", " ".join(f"{v:.9g}" for v in pos))
             nudges[name] = nudges.get(name, 0.0) + depth + margin
+    if max_gap > 0:
+        lower_onto_supports(tree, bodies, path, nudges, max_gap, min_gap=max_penetration, margin=margin,
+                            max_rounds=max_rounds)
+    nudges = {k: v for k, v in nudges.items() if abs(v) > 1e-9}
     if nudges:
         with atomic_path(path) as tmp:
             tree.write(tmp, encoding="unicode")
             with open(tmp, "a") as f:
                 f.write("\n")
     return {k: float(v) for k, v in sorted(nudges.items())}
+
+
+def _support_gaps(model, data, free: set[int], max_gap: float) -> dict[int, list[tuple[float, int]]]:
+    """{free body: [(vertical gap, body under it)]} for contacts within max_gap whose normal is
+    within 45 degrees of vertical. Reads the contacts with every geom margin raised to max_gap,
+    then restores the margins."""
+    import mujoco
+
+    margin0 = model.geom_margin.copy()
+    model.geom_margin[:] = np.maximum(margin0, max_gap)
+    try:
+        mujoco.mj_forward(model, data)
+        gaps: dict[int, list[tuple[float, int]]] = {}
+        for i in range(data.ncon):
+            c = data.contact[i]
+            nz = float(c.frame[2])      # contact normal, from geom1 to geom2
+            b1, b2 = int(model.geom_bodyid[c.geom1]), int(model.geom_bodyid[c.geom2])
+            for body, other, up in ((b2, b1, nz), (b1, b2, -nz)):
+                if body in free and up >= np.sqrt(0.5):      # only what lies under a body supports it
+                    gaps.setdefault(body, []).append((float(c.dist) / up, other))
+    finally:
+        model.geom_margin[:] = margin0
+    return gaps
+
+
+def lower_onto_supports(tree, bodies: dict, path: Path, nudges: dict[str, float], max_gap: float, *,
+                        min_gap: float = 1e-3, margin: float = 2e-4, max_rounds: int = 5) -> None:
+    """Lower free bodies hovering min_gap..max_gap above their support onto it (to `margin` above),
+    editing `tree` and accumulating into `nudges`. A body resting on one that comes down comes down
+    with it: drop(b) = min over its supports s of (own gap to s + drop(s)), static supports drop 0."""
+    import mujoco
+
+    for _ in range(max_rounds):
+        model = _model_from_tree(tree, path)
+        data = mujoco.MjData(model)
+        free = set(_free_bodies(model))
+        gaps = _support_gaps(model, data, free, max_gap)
+        own = {b: [(g - margin if g > min_gap else 0.0, o) for g, o in lst] for b, lst in gaps.items()}
+        drop = {b: 0.0 for b in own}
+        for _ in range(len(own) + 1):       # relax along supports (an acyclic stack converges)
+            new = {b: max(0.0, min(g + (drop.get(o, 0.0) if o in free else 0.0) for g, o in lst))
+                   for b, lst in own.items()}
+            if new == drop:
+                break
+            drop = new
+        drop = {b: d for b, d in drop.items() if d > 1e-6}
+        if not drop:
+            return
+        for b, d in drop.items():
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)
+            el = bodies[name]
+            pos = np.array([float(x) for x in el.get("pos", "0 0 0").split()])
+            pos[2] -= d
+            el.set("pos", " ".join(f"{v:.9g}" for v in pos))
+            nudges[name] = nudges.get(name, 0.0) - d
 
 
 def _model_from_tree(tree, path: Path):
@@ -126,10 +190,12 @@ def _model_from_tree(tree, path: Path):
 
 def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: float = 1e-3,
                max_drift: float = 0.01, resolve: bool = True, max_speed: float = 5.0,
-               support_gap: float = 0.005) -> dict:
+               support_gap: float = 0.005, max_gap: float = 0.02) -> dict:
     """Load, penetration, settle and stability check of an MJCF scene. Returns a plain dict report:
 
-    loaded, bodies (free), static_bodies (names of world-welded bodies with colliders), min_contact_dist (m), nudges {body: m}, drift {body: m} for resting bodies,
+    loaded, bodies (free), static_bodies (names of world-welded bodies with colliders), min_contact_dist
+    (m), nudges {body: signed m along +z: up out of a penetration, down onto a support up to max_gap
+    below}, drift {body: m} for resting bodies,
     max_drift, unsupported (bodies not in contact at t=0), fell {body: m dropped} (unsupported
     bodies that fell more than max_drift: a failure), nan, exploded, sim_seconds_per_wall_second,
     passed, failures [str].
@@ -140,7 +206,7 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     if not path.is_file():
         raise PsimapError(f"MJCF file not found: {path}")
     model = _load(path)
-    nudges = resolve_penetration(path, max_penetration) if resolve else {}
+    nudges = resolve_penetration(path, max_penetration, max_gap=max_gap) if resolve else {}
     if nudges:
         model = _load(path)
     data = mujoco.MjData(model)

@@ -163,6 +163,30 @@ def test_hull_vertex_limit():
     assert len(h.vertices) <= 64 and h.is_watertight and h.volume > 0.8 * s.volume
 
 
+def test_collider_stays_out_of_neighbour_colliders():
+    # a box whose neighbour's collider reaches 6 mm into it (two colliders, each within tolerance
+    # of meshes that touch): without obstacles the box primitive fits; with them it is not a
+    # candidate and the hull is cut back to clear the neighbour, still within tolerance
+    mesh = trimesh.creation.box(extents=[0.2, 0.2, 0.1])
+    mesh.apply_translation([0.1, 0.1, 0.05])
+    neighbour = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
+    neighbour.apply_translation([0.3 - 0.006, 0.1, 0.1])
+    depth, axis = C.convex_overlap(mesh, neighbour)
+    assert depth == pytest.approx(0.006) and np.allclose(axis, [-1, 0, 0])
+    free = C.collision_geometry(mesh, 0.02)
+    assert free.kind == "box" and C.penetrates(free.parts, [neighbour])
+    c = C.collision_geometry(mesh, 0.02, obstacles=[neighbour])
+    assert c.kind == "hull" and not C.penetrates(c.parts, [neighbour])
+    assert c.parts[0].bounds[1, 0] == pytest.approx(0.194 - 5e-4, abs=1e-6)
+    assert c.error == pytest.approx(0.0065, abs=1e-3) and len(c.parts[0].vertices) <= C.MAX_HULL_VERTICES
+    # separated shapes: a negative depth, nothing cut
+    far = neighbour.copy()
+    far.apply_translation([0.1, 0, 0])
+    assert C.convex_overlap(mesh, far)[0] < 0 and C.clip_convex(mesh, [far]) is mesh
+    # a part entirely inside an obstacle has nothing left
+    assert C.clip_convex(mesh, [trimesh.creation.box(extents=[1, 1, 1])]) is None
+
+
 # ---------------------------------------------------------------- texture
 def _cam_looking_down(height=1.0, w=64, h=64, f=60.0):
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])

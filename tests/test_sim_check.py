@@ -47,9 +47,32 @@ def test_floating_object_falls_and_fails(tmp_path):
     assert r["unsupported"] == ["box"] and "box" not in r["drift"]
     assert r["fell"]["box"] == pytest.approx(0.45, abs=0.01)
     assert not r["passed"] and any("unsupported object(s) fell" in f for f in r["failures"])
-    # 3 mm above it: within the support gap, it settles onto the floor and passes
+    # 3 mm above it: lowered onto the floor (reported as a negative nudge) and passes
     r2 = check_mjcf(_write(tmp_path, BOX.format(z=0.053, extra=""), "low.xml"))
     assert r2["passed"] and r2["unsupported"] == [] and r2["fell"] == {}
+    assert r2["nudges"]["box"] == pytest.approx(-0.003, abs=3e-4)
+
+
+def test_hovering_stack_is_lowered_bottom_first(tmp_path):
+    # a box 15 mm above a static table's top, a second box 8 mm above the first: both come down
+    # (a reconstruction's underside a voxel above its support would drop in the settle)
+    table = '<body name="table" pos="0 0 0.2"><geom type="box" size="0.4 0.3 0.2"/></body>\n'
+    top = ('<body name="top" pos="0 0 {z}"><freejoint/>'
+           '<geom type="box" size="0.05 0.05 0.05" mass="0.2"/></body>\n').format(z=0.4 + 0.015 + 0.1 + 0.008 + 0.05)
+    text = BOX.format(z=0.4 + 0.015 + 0.05, extra=table + top).replace(
+        'size="0.1 0.1 0.05" mass="1"', 'size="0.1 0.1 0.05" mass="1"')
+    p = _write(tmp_path, text)
+    r = check_mjcf(p)
+    assert r["passed"], r["failures"]
+    assert r["nudges"]["box"] == pytest.approx(-0.015, abs=5e-4)
+    assert r["nudges"]["top"] == pytest.approx(-0.023, abs=5e-4)     # its own gap + the box's
+    assert r["max_drift"] < 1e-3 and r["unsupported"] == []
+    # without resolving, the same scene drops more than a centimetre: the check would fail
+    r2 = check_mjcf(_write(tmp_path, text, "raw.xml"), resolve=False)
+    assert not r2["passed"]
+    # beyond max_gap nothing is lowered: floating is a broken scene, not a reconstruction gap
+    r3 = check_mjcf(_write(tmp_path, text, "far.xml"), max_gap=0.005)
+    assert "box" not in r3["nudges"] and not r3["passed"]
 
 
 def test_toppling_object_fails_drift(tmp_path):
