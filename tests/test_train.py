@@ -94,6 +94,45 @@ def test_deterministic_for_a_seed(scene_frames):
     assert len(c) != len(a) or not torch.equal(a.surfels["means"], c.surfels["means"])
 
 
+def _surfel_digest(scene) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    for k in ("means", "quats", "scales", "opacities", "colors"):
+        h.update(scene.surfels[k].numpy().tobytes())
+    return h.hexdigest()
+
+
+_DIGEST_IN_SUBPROCESS = """
+import sys, torch
+sys.path.insert(0, {tests!r})
+torch.set_num_threads(2)                     # the trainer must not depend on the caller's threads
+import test_train as T
+from psimap.train.trainer import train
+frames, _ = T.tiny_scene()
+print("DIGEST", T._surfel_digest(train(T.sequence(frames), T.cfg(iters=40), log=lambda m: None)))
+"""
+
+
+def test_deterministic_across_processes_and_thread_settings(scene_frames):
+    """Same seed, bit-identical surfels in a fresh process whose torch / OpenMP / BLAS thread
+    counts differ (40 steps, one density-control round in between)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    frames, _ = scene_frames
+    here = _surfel_digest(train(sequence(frames), cfg(iters=40), log=lambda m: None))
+    env = dict(os.environ, OMP_NUM_THREADS="2", OPENBLAS_NUM_THREADS="2", MKL_NUM_THREADS="2")
+    code = _DIGEST_IN_SUBPROCESS.format(tests=str(Path(__file__).resolve().parent))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    there = [ln.split()[1] for ln in out.stdout.splitlines() if ln.startswith("DIGEST")]
+    assert there == [here]
+
+
 def test_resume_continues(trained, scene_frames, tmp_path):
     frames, _ = scene_frames
     ckpt = tmp_path / "scene.ckpt"

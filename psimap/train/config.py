@@ -34,6 +34,9 @@ class TrainConfig:
                                 "lambda_n normal alignment (the prior's patches fit the noisy points to "
                                 "~1 cm; 1.0 held surfels on them and cost accuracy)")
     lambda_geo_normal: float = _f(0.1, "lambda_n: weight of 1 - |n_i . n_k| inside L_geo")
+    geo_candidates: int = _f(1, "L_geo's component of a surfel: 1 = nearest component mean; k > 1 = "
+                                "the most likely of the k nearest (near a crease the nearest mean can "
+                                "be the other face's patch)")
     lambda_iso: float = _f(0.05, "lambda_5: L_iso = ((s1 - s2) / spacing)^2, anisotropy penalty "
                                  "(scales in units of the initial surfel spacing)")
     lambda_normal: float = _f(0.05, "2DGS normal consistency: rendered normal vs normal of the "

@@ -282,7 +282,8 @@ def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: f
         sub = torch.randperm(n, generator=generator)[:geo_samples] if n > geo_samples else slice(None)
         R = quat_to_rotmat(params["quats"][sub])
         terms["geo"] = cfg.lambda_geo * geo_loss(params["means"][sub], R[:, :, 2], index,
-                                                 lambda_n=cfg.lambda_geo_normal)
+                                                 lambda_n=cfg.lambda_geo_normal,
+                                                 candidates=cfg.geo_candidates)
     if regularize and cfg.lambda_normal > 0:
         terms["normal"] = cfg.lambda_normal * L.normal_consistency(out.normal, out.alpha, out.depth, fr.K)
     if regularize and cfg.lambda_dist > 0:
