@@ -241,3 +241,130 @@ def test_class_term_of_the_matching_cost(w_class, winner):
 
     field.losses(render, torch.zeros(5, 3), torch.arange(5), inst, sem, K, torch.eye(4), w, h)
     assert field.matched.tolist() == [1.0 - winner, float(winner)]
+
+
+def test_queries_matched_apart_are_not_duplicates():
+    # a bottle's query (10 surfels) lies inside the 3D mask of the shelf it stands on (100 surfels)
+    masks = torch.zeros(100, 2, dtype=torch.bool)
+    masks[:10, 0] = True
+    masks[:, 1] = True
+    assert duplicate_queries(masks, 0.6).tolist() == [True, False]
+    distinct = torch.tensor([[False, True], [True, False]])
+    assert duplicate_queries(masks, 0.6, distinct).tolist() == [False, False]
+
+
+def test_field_counts_frames_where_two_queries_match_different_masks():
+    from psimap.panoptic.field import PanopticConfig, PanopticField
+
+    # two surfels at x = -1 and x = +1, two queries centred on them; a frame whose two masks are
+    # the two surfels' pixels matches both queries: comatched counts it, and once it reaches
+    # distinct_frames the smaller query is no longer dropped as a duplicate of the larger
+    feat = torch.eye(2, 4)
+    q = InstanceQueries(feat, torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]]),
+                        torch.eye(3).expand(2, 3, 3) * 0.3, temperature=0.1)
+    classes = [{"id": 1, "name": "thing", "isthing": True}]
+    f = PanopticField(2, classes, q, PanopticConfig(feat_dim=4, topk=2, distinct_frames=2))
+    with torch.no_grad():
+        f.instance.copy_(5 * feat)
+    means = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
+    inst = torch.tensor([[1, 2]])
+
+    def render(idx, feats, topk):              # one pixel per surfel, fully opaque
+        from types import SimpleNamespace
+
+        return SimpleNamespace(features=feats.unsqueeze(0), alpha=torch.ones(1, 2))
+
+    for _ in range(2):
+        f.losses(render, means, torch.arange(2), inst, None, torch.eye(3), torch.eye(4), 2, 1)
+    assert f.comatched[0, 1] == 2 and f.comatched[1, 0] == 2
+    # mask_affinity 0 puts every surfel in both 3D masks (IoM 1): only the co-match evidence keeps both
+    f.cfg.mask_affinity = -1.0
+    f.steps = f.born.max() + f.cfg.adjust_every
+    f.matched[:] = 5
+    f.visible[:] = 5
+    assert f.adjust(means) == 0
+    f.comatched.zero_()
+    assert f.adjust(means) == 1
+
+
+def test_smooth_instances_fixes_border_flips_and_keeps_small_objects():
+    from psimap.panoptic.field import smooth_instances
+
+    g = torch.stack(torch.meshgrid(torch.arange(20.0), torch.arange(10.0), indexing="ij"), -1).reshape(-1, 2)
+    means = torch.cat([g * 0.01, torch.zeros(len(g), 1)], 1)           # 20 x 10 grid, 1 cm apart
+    truth = torch.where(means[:, 0] < 0.095, 1, 2)                     # two objects touching at x ~ 0.1
+    small = (means[:, 0] > 0.165) & (means[:, 1] < 0.025)              # a 3 x 3 object in a corner
+    truth[small] = 3
+    noisy = truth.clone()
+    # isolated flips 1 <-> 2 one row in from the boundary (on the boundary itself a surfel's
+    # neighbours are split evenly and no majority can say which side is right)
+    near = torch.nonzero(((means[:, 0] - 0.095).abs() - 0.015).abs() < 1e-4).flatten()[::3]
+    border = near[truth[near] < 3]
+    noisy[border] = 3 - noisy[border]
+    lone = torch.tensor([[5.0, 5.0, 5.0]])                              # far from everything
+    means = torch.cat([means, lone])
+    noisy = torch.cat([noisy, torch.tensor([4])])
+    truth = torch.cat([truth, torch.tensor([4])])
+    thing = torch.ones(len(noisy), dtype=torch.bool)
+    assert int((noisy != truth).sum()) >= 5
+    out = smooth_instances(means, noisy, thing, 8)
+    assert torch.equal(out, truth)
+    # surfels that are not things neither vote nor change
+    thing[:5] = False
+    out = smooth_instances(means, noisy, thing, 8)
+    assert torch.equal(out[:5], noisy[:5])
+
+
+def test_fuse_classes_gives_border_surfels_to_the_instance_their_semantics_name():
+    from psimap.panoptic.field import fuse_classes
+
+    # surfels 0-5: a table (class column 0), 6-9: a mug (column 1). The instance head gives mug
+    # surfels 8, 9 to the table's query by a small margin; their semantics say "mug" clearly.
+    logits = torch.zeros(10, 3)
+    logits[:6, 0] = 5.0
+    logits[6:8, 1] = 5.0
+    logits[8:, 0], logits[8:, 1] = 1.0, 0.5
+    logits[:, 2] = -1.0                                  # query 2 owns nothing
+    semantic = torch.zeros(10, 2)
+    semantic[:6, 0] = 4.0
+    semantic[6:, 1] = 4.0
+    thing = torch.ones(10, dtype=torch.bool)
+    owner = logits.argmax(-1)
+    assert owner[8:].tolist() == [0, 0]
+    fused = fuse_classes(logits, semantic, owner, thing)
+    assert fused.tolist() == [0] * 6 + [1] * 4
+    # the semantic head does not override a confident instance head
+    semantic[0] = torch.tensor([0.0, 1.0])
+    assert int(fuse_classes(logits, semantic, owner, thing)[0]) == 0
+    # surfels that are not things keep their owner
+    thing[8] = False
+    assert int(fuse_classes(logits, semantic, owner, thing)[8]) == 0
+
+
+def test_spawned_query_starts_from_its_surfels_features_and_wins_them():
+    from psimap.panoptic.field import PanopticConfig, PanopticField
+
+    # a shelf's query (feature 3 e0, wide Gaussian at the origin) and a bottle at x = 0.3 m whose
+    # surfels were trained toward the shelf's feature (no bottle query existed yet)
+    g = torch.Generator().manual_seed(0)
+    shelf = torch.rand(50, 3, generator=g) - 0.5
+    bottle = torch.tensor([0.3, 0.0, 0.0]) + 0.01 * torch.randn(6, 3, generator=g)
+    pos = torch.cat([shelf, bottle])
+    feat = torch.zeros(56, 4)
+    feat[:, 0] = 3.0
+    q = InstanceQueries(torch.tensor([[3.0, 0, 0, 0]]), torch.zeros(1, 3), torch.eye(3).unsqueeze(0) * 0.09,
+                        temperature=0.1)
+    f = PanopticField(56, [{"id": 1, "name": "thing", "isthing": True}], q, PanopticConfig(feat_dim=4))
+    pts = bottle + 0.002                                    # the bottle mask's back-projected pixels
+    start = f._spawn_feature(pts, pos, feat)
+    assert torch.allclose(start, torch.tensor([3.0, 0, 0, 0]), atol=1e-5)
+    for spawn_feat, bottle_owner in ((start, 1), (torch.tensor([0.0, 3.0, 0, 0]), 0)):
+        f2 = PanopticField(56, [{"id": 1, "name": "thing", "isthing": True}],
+                           InstanceQueries(q.feature.detach(), q.mean.detach(), q.cov().detach(), temperature=0.1),
+                           PanopticConfig(feat_dim=4))
+        f2._pending = [(pts, spawn_feat)]
+        f2._spawn_pending()
+        assert f2.queries.count == 2
+        own = f2.queries.distribution(feat, pos).argmax(-1)
+        assert (own[50:] == bottle_owner).all(), (spawn_feat, own[50:])
+        assert (own[:50] == 0).float().mean() > 0.9

@@ -22,11 +22,15 @@ def iom_matrix(masks: torch.Tensor) -> torch.Tensor:
     return inter / size.clamp_min(1.0).unsqueeze(1) * (size > 0).float().unsqueeze(1)
 
 
-def duplicate_queries(masks: torch.Tensor, threshold: float = 0.6) -> torch.Tensor:
+def duplicate_queries(masks: torch.Tensor, threshold: float = 0.6,
+                      distinct: torch.Tensor | None = None) -> torch.Tensor:
     """Queries to drop as duplicates: [Q] bool.
 
     Smallest masks first: a query is a duplicate when IoM with a larger, still-kept query exceeds
     `threshold`; the larger one is kept. Empty masks are duplicates of nothing (handled as useless).
+    distinct [Q, Q] bool (optional): pairs known to be different objects (e.g. both matched to
+    different 2D masks of one frame, repeatedly) are never duplicates of each other: a bottle's
+    query lies inside the Gaussian of the shelf it stands on, so its 3D mask is inside the shelf's.
     """
     q = masks.shape[1]
     drop = torch.zeros(q, dtype=torch.bool)
@@ -40,6 +44,8 @@ def duplicate_queries(masks: torch.Tensor, threshold: float = 0.6) -> torch.Tens
             continue
         larger = order[rank + 1:]
         larger = larger[~drop[larger]]
+        if distinct is not None:
+            larger = larger[~distinct[i, larger].cpu()]
         if larger.numel() and bool((iom[i, larger] > threshold).any()):
             drop[i] = True
     return drop

@@ -51,7 +51,18 @@ class PanopticConfig:
     mask_mode: str = "affinity"
     mask_share: float = 0.3
     min_instance_surfels: int = 10  # instances with fewer surfels are dropped at export
+    # duplicate rule: two queries matched to two different 2D masks of one frame in at least this
+    # many frames are different objects, whatever their 3D IoM (0 = off)
+    distinct_frames: int = 2
+    # final cleanup: a thing surfel takes the majority instance of its k nearest thing surfels
+    # (argmax noise on object borders); 0 = off
+    smooth_k: int = 8
+    # export: a thing surfel's instance maximises p(q | g) * p(class of q | g), the instance and the
+    # semantic heads combined, instead of p(q | g) alone (a mug's border surfels won by the table's
+    # query but whose semantics say "mug" go to the mug)
+    class_fusion: bool = True
     spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
+    spawn_feature: bool = True      # a spawned query starts from its mask's surfels' features
     max_spawn_per_step: int = 2
     max_queries: int = 256
 
@@ -150,9 +161,11 @@ class PanopticField(nn.Module):
         # [Q, Q] frames where two queries drew inside one 2D mask / inside two different masks
         self.same = torch.zeros(queries.count, queries.count)
         self.apart = torch.zeros(queries.count, queries.count)
+        self.comatched = torch.zeros(queries.count, queries.count)   # both matched in one frame
         self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
         self.steps = 0
-        self._pending: list[torch.Tensor] = []        # point sets of masks no query covers
+        # (point set [P, 3], feature [F] or None) of masks that no query covers
+        self._pending: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         self.last_drops: dict[str, int] = {}
         self.drop_log: list[tuple[int, dict]] = []    # (step, {rule: queries dropped}) per adjustment
         self._gen = generator
@@ -180,23 +193,29 @@ class PanopticField(nn.Module):
         """Queries for masks that no existing query covered (objects the seed frames missed)."""
         if not self._pending:
             return
-        groups, self._pending = self._pending, []
+        pending, self._pending = self._pending, []
         room = self.cfg.max_queries - self.queries.count
-        groups = groups[: max(0, room)]
-        if not groups:
+        pending = pending[: max(0, room)]
+        if not pending:
             return
+        groups = [p for p, _ in pending]
         feat, mean, cov = init_from_points(groups, self.cfg.feat_dim, generator=self._gen)
+        for i, (_, f) in enumerate(pending):
+            if f is not None:
+                feat[i] = f
         self.queries.add(feat, mean, cov)
         a = len(groups)
         self.matched = torch.cat([self.matched, torch.zeros(a)])
         self.visible = torch.cat([self.visible, torch.zeros(a)])
         self.same = F.pad(self.same, (0, a, 0, a))
         self.apart = F.pad(self.apart, (0, a, 0, a))
+        self.comatched = F.pad(self.comatched, (0, a, 0, a))
         self.born = torch.cat([self.born, torch.full((a,), float(self.steps))])
         self._make_optimizers()
 
     def _queue_uncovered(self, masks: torch.Tensor, match, prob: torch.Tensor, depth: torch.Tensor,
-                         K: torch.Tensor, w2c: torch.Tensor) -> None:
+                         K: torch.Tensor, w2c: torch.Tensor, surfel_pos: torch.Tensor | None = None,
+                         surfel_feat: torch.Tensor | None = None) -> None:
         """Queue back-projected points of unmatched masks that no free query explains.
 
         masks [M, H, W] bool; prob [H*W, Q] the queries' rendered probabilities (detached). A query
@@ -227,8 +246,30 @@ class PanopticField(nn.Module):
                 if bool(free.any()) and float(
                         self.queries.mahalanobis2(pts.mean(0, keepdim=True))[:, free].min()) < 9.0:
                     continue
-            self._pending.append(pts)
+            feat = self._spawn_feature(pts, surfel_pos, surfel_feat) if self.cfg.spawn_feature else None
+            self._pending.append((pts, feat))
             queued += 1
+
+    def _spawn_feature(self, pts: torch.Tensor, surfel_pos: torch.Tensor | None,
+                       surfel_feat: torch.Tensor | None) -> torch.Tensor | None:
+        """Feature [F] of a new query: the mean instance feature of the surfels under its mask.
+
+        pts [P, 3] back-projected mask pixels; surfel_pos [V, 3] / surfel_feat [V, F] the visible
+        surfels. A random feature loses the softmax on those surfels to the query whose object
+        they were trained toward (a bottle's surfels to the shelf's query): the new query then draws
+        nothing, is never matched, is pruned as useless and spawned again, over and over. Starting
+        from the surfels' own features it draws them from the first step and is matched to its mask.
+        Scaled to the largest query feature norm so sigmoid(f_q . f_g) is as decisive as the others'.
+        """
+        if surfel_pos is None or surfel_feat is None or surfel_pos.shape[0] == 0:
+            return None
+        near = torch.cat([torch.cdist(c, surfel_pos).argmin(-1) for c in pts.split(256)])
+        f = surfel_feat[near].mean(0)
+        norm = float(f.norm())
+        if not norm > 1e-6:
+            return None
+        scale = max(1.0, float(self.queries.feature.detach().norm(dim=-1).max())) if self.queries.count else 1.0
+        return f / norm * scale
 
     def remap(self, idx: torch.Tensor) -> None:
         """Follow the trainer's densification: new surfel j takes old surfel idx[j]'s parameters."""
@@ -296,6 +337,8 @@ class PanopticField(nn.Module):
                                         class_cost=self._class_cost(prob, img[pix][:, q:], alpha[pix], mask_cls))
                 l_ins = matched_mask_loss(prob, target, match)
                 self.matched[match.query_idx] += 1
+                mq = match.query_idx
+                self.comatched[mq[:, None], mq[None, :]] += 1.0
                 with torch.no_grad():
                     # The 2D mask holding most (> iom_threshold) of each seen query's pixels; pairs
                     # of queries in one mask vs in different masks (see co_mask_duplicates).
@@ -308,7 +351,8 @@ class PanopticField(nn.Module):
                     self.same += (both & eq).float()
                     self.apart += (both & ~eq).float()
                 if cfg.spawn and depth is not None:
-                    self._queue_uncovered(masks, match, img[:, :q].detach(), depth, K, w2c)
+                    self._queue_uncovered(masks, match, img[:, :q].detach(), depth, K, w2c, pos,
+                                          f_vis.detach())
                 info["matched"] = int(match.query_idx.numel())
         # Semantic: cross-entropy of alpha-normalised blended logits on labelled, covered pixels.
         l_sem = zero
@@ -362,7 +406,8 @@ class PanopticField(nn.Module):
         else:
             masks = self.affinity_all(means) > self.cfg.mask_affinity               # [N, Q]
         old_enough = (self.steps - self.born) >= self.cfg.adjust_every              # grace for new ones
-        dup = duplicate_queries(masks, self.cfg.iom_threshold) & old_enough
+        distinct = (self.comatched >= self.cfg.distinct_frames) if self.cfg.distinct_frames > 0 else None
+        dup = duplicate_queries(masks, self.cfg.iom_threshold, distinct) & old_enough
         useless = useless_queries(self.matched, self.visible, self.cfg.min_match_rate) & old_enough
         # never matched in a frame though it has lived a full adjustment period: it owns no pixel
         # anywhere (visible stays 0, so the rate test above cannot see it) yet would own surfels
@@ -375,6 +420,11 @@ class PanopticField(nn.Module):
         self.last_drops = {"duplicate": int(dup.sum()), "fragment": int((fragment & ~dup).sum()),
                            "useless": int((useless & ~dup & ~fragment).sum()),
                            "empty": int((empty & ~dup & ~useless & ~fragment).sum())}
+        # per dropped query (index before the drop): the first rule that fired, for diagnosis
+        self._why = {}
+        for rule, hit in (("empty", empty), ("useless", useless), ("fragment", fragment), ("duplicate", dup)):
+            for j in torch.nonzero(hit).flatten().tolist():
+                self._why[j] = rule
         self.drop_log.append((self.steps, dict(self.last_drops)))
         if bool(drop.all()):                                                         # keep the best one
             drop[int(torch.argmax(self.matched))] = False
@@ -386,6 +436,7 @@ class PanopticField(nn.Module):
             self.visible = self.visible[keep]
             self.same = self.same[keep][:, keep]
             self.apart = self.apart[keep][:, keep]
+            self.comatched = self.comatched[keep][:, keep]
             self.born = self.born[keep]
             self._make_optimizers()
         return removed
@@ -419,13 +470,25 @@ class PanopticField(nn.Module):
             instance_class: dict[int, int] = {}
             kept = torch.zeros(0, dtype=torch.long)      # queries that own an instance, in id order
             if q:
-                owner = self.affinity_all(means).argmax(-1)
+                aff = self.affinity_all(means)                                      # [N, Q]
+                owner = aff.argmax(-1)
+                if self.cfg.class_fusion and self.class_ids.numel():
+                    owner = fuse_classes(aff / self.queries.temperature, self.semantic.detach(), owner,
+                                         is_thing)
                 owner[~is_thing] = -1
                 counts = torch.bincount(owner[owner >= 0], minlength=q)
                 kept = torch.nonzero(counts >= self.cfg.min_instance_surfels).flatten()
                 new_id = torch.zeros(q + 1, dtype=torch.long)
                 new_id[kept] = torch.arange(1, kept.numel() + 1)
                 inst = torch.where(owner >= 0, new_id[owner.clamp_min(0)], inst)
+                if self.cfg.smooth_k > 1:
+                    inst = smooth_instances(means.detach(), inst, owner >= 0, self.cfg.smooth_k)
+                    alive = torch.bincount(inst, minlength=kept.numel() + 1)[1:] > 0
+                    if not bool(alive.all()):                     # an instance outvoted entirely
+                        kept = kept[alive]
+                        renum = torch.zeros(alive.numel() + 1, dtype=torch.long)
+                        renum[1:][alive] = torch.arange(1, kept.numel() + 1)
+                        inst = renum[inst]
                 for j in range(1, kept.numel() + 1):
                     own = inst == j
                     members = sem[own]
@@ -450,6 +513,63 @@ class PanopticField(nn.Module):
             "instance_class": lab["instance_class"],
             "config": asdict(self.cfg),
         }
+
+
+def fuse_classes(logits: torch.Tensor, semantic: torch.Tensor, owner: torch.Tensor,
+                 thing: torch.Tensor) -> torch.Tensor:
+    """Instance owner [N] from both heads: argmax_q log softmax_q(logits) + log p_sem(class(q) | g).
+
+    logits [N, Q] affinity / temperature; semantic [N, S] per-surfel class logits; owner [N] the
+    instance-only argmax; thing [N] bool. class(q) = majority semantic class over the thing
+    surfels q owns by `owner`; a query owning none stays out (it would not become an instance,
+    and with no class it would pay no semantic term).
+    """
+    n, q = logits.shape
+    col = semantic.argmax(-1)
+    sel = thing & (owner >= 0)
+    s = semantic.shape[1]
+    votes = torch.zeros(q, s)
+    votes.index_put_((owner[sel], col[sel]), torch.ones(int(sel.sum())), accumulate=True)
+    qcls = votes.argmax(-1)
+    known = votes.sum(-1) > 0
+    log_sem = torch.log_softmax(semantic, -1)[:, qcls]                                  # [N, Q]
+    score = torch.log_softmax(logits, -1) + torch.where(known[None, :], log_sem, torch.full_like(log_sem, -torch.inf))
+    return torch.where(thing, score.argmax(-1), owner)
+
+
+def smooth_instances(means: torch.Tensor, inst: torch.Tensor, thing: torch.Tensor, k: int) -> torch.Tensor:
+    """Majority vote of instance ids over each thing surfel's k nearest thing surfels (itself included).
+
+    means [N, 3]; inst [N] long (0 = none); thing [N] bool. The per-surfel argmax of the affinity is
+    noisy where two objects touch (a few table surfels under a bottle's query, a few bottle surfels
+    under the shelf's): those surfels are outvoted by their neighbours. Neighbours farther than 3x
+    the median nearest-neighbour distance do not vote (a lone surfel keeps its id). A surfel changes
+    only to an id that holds a strict majority of its votes.
+    """
+    from scipy.spatial import cKDTree
+
+    idx = torch.nonzero(thing).flatten()
+    if idx.numel() <= k:
+        return inst
+    pts = means[idx].double().numpy()
+    tree = cKDTree(pts)
+    d1, _ = tree.query(pts, k=2)
+    radius = 3.0 * float(np.median(d1[:, 1]))
+    d, nb = tree.query(pts, k=k, distance_upper_bound=radius if radius > 0 else np.inf)
+    valid = np.isfinite(d)
+    uniq, lab = np.unique(inst[idx].numpy(), return_inverse=True)
+    votes = np.where(valid, lab[np.minimum(nb, len(idx) - 1)], -1)                    # [T, k]
+    n_lab = len(uniq)
+    rows = np.repeat(np.arange(len(idx)), k)
+    ok = votes.reshape(-1) >= 0
+    counts = np.zeros((len(idx), n_lab), dtype=np.int64)
+    np.add.at(counts, (rows[ok], votes.reshape(-1)[ok]), 1)
+    best = counts.argmax(1)
+    change = counts[np.arange(len(idx)), best] * 2 > valid.sum(1)
+    out = inst.clone()
+    new = np.where(change, uniq[best], inst[idx].numpy())
+    out[idx] = torch.as_tensor(new, dtype=inst.dtype)
+    return out
 
 
 def visible_surfels(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
