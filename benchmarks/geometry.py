@@ -101,10 +101,10 @@ def raw_tsdf(data, voxel=None):
     from psimap.data import load
     seq = load(data)
     fr = [seq[i] for i in range(len(seq))]
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     mesh = fuse_scene([f.depth for f in fr], [f.K for f in fr], [f.c2w for f in fr],
                       colors=[f.rgb for f in fr], voxel_size=voxel)
-    return mesh, time.perf_counter() - t
+    return mesh, time.perf_counter() - t, time.process_time() - c
 
 
 def run_size(label, frames, width, height, iters, seed, samples, curves: bool, rows, curve_data):
@@ -120,9 +120,9 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
     generate(data, seed, frames=frames, width=width, height=height, progress=False)
     print(f"[{label}] generated {data} in {time.perf_counter() - t:.1f} s", flush=True)
 
-    mesh, secs = raw_tsdf(data)
+    mesh, secs, cpu = raw_tsdf(data)
     m = _geo(mesh, data, samples)
-    rows.append(_row(label, seed, RAW, m, secs, secs, None))
+    rows.append(_row(label, seed, RAW, m, secs, cpu, None))
     print(rows[-1], flush=True)
 
     for name, prior in ((PSIMAP, True), (NO_PRIOR, False)):

@@ -37,6 +37,9 @@ class TrainConfig:
     geo_candidates: int = _f(1, "L_geo's component of a surfel: 1 = nearest component mean; k > 1 = "
                                 "the most likely of the k nearest (near a crease the nearest mean can "
                                 "be the other face's patch)")
+    geo_inlier: float = _f(0.0, "L_geo ignores a surfel farther than this many SOGMM residual budgets "
+                                "from its component's plane (it lies on another surface: a thin "
+                                "part's side, across a crease); 0 = every surfel counts")
     lambda_iso: float = _f(0.05, "lambda_5: L_iso = ((s1 - s2) / spacing)^2, anisotropy penalty "
                                  "(scales in units of the initial surfel spacing)")
     lambda_normal: float = _f(0.05, "2DGS normal consistency: rendered normal vs normal of the "

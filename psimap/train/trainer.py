@@ -207,7 +207,8 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
     n_init = max(16, int(round(area / spacing**2)))
     means, quats, scales, _ = sample_surfels(sogmm, n_init, seed=cfg.seed)
     log(f"SOGMM prior: K = {sogmm.K} components from {len(pts4)} points, residual "
-        f"{sogmm.fit_stats.get('residual_mean', float('nan')) * 1000:.1f} mm, {time.perf_counter() - t0:.1f} s; "
+        f"{sogmm.fit_stats.get('residual_mean', float('nan')) * 1000:.1f} mm (budget "
+        f"{sogmm.fit_stats.get('residual_budget', float('nan')) * 1000:.1f} mm), {time.perf_counter() - t0:.1f} s; "
         f"{n_init} surfels at {spacing * 100:.1f} cm spacing over {area:.1f} m^2")
     # colour: the image colour of the nearest observed point
     p, c = backprojected(frames, stride)
@@ -283,12 +284,19 @@ def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: f
         R = quat_to_rotmat(params["quats"][sub])
         terms["geo"] = cfg.lambda_geo * geo_loss(params["means"][sub], R[:, :, 2], index,
                                                  lambda_n=cfg.lambda_geo_normal,
-                                                 candidates=cfg.geo_candidates)
+                                                 candidates=cfg.geo_candidates,
+                                                 inlier=_geo_inlier(cfg, index))
     if regularize and cfg.lambda_normal > 0:
         terms["normal"] = cfg.lambda_normal * L.normal_consistency(out.normal, out.alpha, out.depth, fr.K)
     if regularize and cfg.lambda_dist > 0:
         terms["distortion"] = cfg.lambda_dist * out.distortion.mean()
     return terms, out
+
+
+def _geo_inlier(cfg: TrainConfig, index) -> float | None:
+    """L_geo's inlier distance (m): cfg.geo_inlier SOGMM residual budgets, None when off."""
+    budget = float(index.sogmm.fit_stats.get("residual_budget", 0.0))
+    return cfg.geo_inlier * budget if cfg.geo_inlier > 0 and budget > 0 else None
 
 
 @torch.no_grad()
