@@ -334,15 +334,21 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
     if err <= tol:
         return Collision("hull", err, tol, parts=[hull])
     best = Collision("hull", err, tol, parts=[hull])
+    last = 0.0
     for thr in coacd_thresholds:
-        if time.perf_counter() - t_start > time_budget:
+        # a finer threshold costs ~3-4x the previous call (measured on 10 fused objects): start
+        # it only when it can end within the budget
+        if time.perf_counter() - t_start + 3.0 * last > time_budget:
             break
-        parts = clipped([limit_hull_vertices(p) for p in _coacd(mesh, thr, max_hulls, seed)])
+        t_call = time.perf_counter()
+        raw = _coacd(mesh, thr, max_hulls, seed)
+        last = time.perf_counter() - t_call
+        parts = clipped([limit_hull_vertices(p) for p in raw])
         if not parts:
             continue
         err = parts_error(parts)
         if err < best.error:
             best = Collision("decomposition" if len(parts) > 1 else "hull", err, tol, parts=parts)
-        if err <= tol:
-            break
+        if err <= tol or len(raw) >= max_hulls:
+            break       # fits, or the hull cap already binds: a finer threshold cannot add parts
     return best

@@ -157,6 +157,20 @@ def test_concave_shape_decomposes_within_limits():
     assert C.collision_geometry(L, max_hulls=1, coacd_thresholds=()).error > 3 * c.tolerance
 
 
+def test_decomposition_stops_when_the_hull_cap_binds(monkeypatch):
+    # a tolerance nothing meets: once a threshold already returns max_hulls parts, finer ones (each
+    # ~3-4x slower) cannot add any, so CoACD runs once, not once per threshold
+    U = trimesh.boolean.union([trimesh.creation.box(extents=[0.3, 0.06, 0.06]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([0.12, 0, 0.18]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([-0.12, 0, 0.18])],
+                              engine="manifold")
+    calls = []
+    real = C._coacd
+    monkeypatch.setattr(C, "_coacd", lambda *a, **k: calls.append(a[1]) or real(*a, **k))
+    c = C.collision_geometry(U, 1e-3, max_hulls=2, coacd_thresholds=(0.3, 0.15, 0.08), time_budget=60)
+    assert calls == [0.3] and c.hull_count == 2 and c.error > c.tolerance
+
+
 def test_hull_vertex_limit():
     s = trimesh.creation.icosphere(4, radius=0.1)
     h = C.limit_hull_vertices(s, 64)
