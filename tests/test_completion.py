@@ -243,6 +243,27 @@ def test_plugin_output_is_aligned_and_post_processed():
     assert res.method == "sphere" and "no GPU" in res.candidates["plugin"]["why"]
 
 
+def test_a_sponge_is_not_a_completion():
+    # a proposal with tunnels through it (what Poisson closing of a double-skinned fused shell
+    # gives) is rejected on its genus, and another method completes the object
+    gt = trimesh.creation.box(extents=[0.12, 0.08, 0.06]).apply_translation([0.2, 0.1, 0.03])
+    pts = seen_side(gt, [1, 0.2, 0.6])
+
+    def sponge(points, images, label):
+        m = to_manifold(gt.copy())
+        for y in (-0.025, 0.0, 0.025):
+            hole = trimesh.creation.cylinder(radius=0.006, height=0.3, sections=16)
+            hole.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+            m = m - to_manifold(hole.apply_translation([0.2, 0.1 + y, 0.03]))
+        return from_manifold(m)
+
+    assert sponge(None, None, None).euler_number == -4              # genus 3
+    res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": sponge, "support_planes": TABLE})
+    assert res.completed and res.method != "plugin"
+    assert res.candidates["plugin"]["why"] == "genus 3: tunnels through the solid"
+    assert res.mesh.body_count - res.mesh.euler_number // 2 <= 1
+
+
 def _mug():
     body = trimesh.creation.revolve(np.array([[0, 0], [0.04, 0], [0.04, 0.1], [0.035, 0.1],
                                               [0.035, 0.006], [0, 0.006]]), sections=64)
