@@ -61,6 +61,8 @@ _PARAMETRIC = ("sphere", "cylinder", "box", "revolution")
 # A closed result with more handles than a mug's is a sponge, not an object: Poisson closing of a
 # fused shell whose two skins disagree in orientation came out with genus 17 on a 20 cm box (43 %
 # of its volume missing, its convex hull 7 cm off), and every collider after it chased the holes.
+# Handles up to two voxels wide are sealed (Poisson leaves sub-voxel ones on a plain ball); a
+# candidate with wider ones is rejected.
 MAX_GENUS = 1
 FREE_CARVE = 0.01             # carve a candidate when more than this share of it is known-free
 # Residual weights inside a tier: a simpler shape wins unless clearly worse (a bottle fits a
@@ -152,7 +154,7 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
                           seconds=time.perf_counter() - t0)
     from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
     from .freespace import cameras_seeing, check_cameras, known_free, seen_on_surface
-    from .meshops import is_solid, solidify, to_manifold
+    from .meshops import genus, is_solid, seal_handles, solidify, to_manifold
     from .support import normalise_planes, planes_from_background, support_below
 
     # Context is validated before any early return so malformed input always fails loudly.
@@ -257,10 +259,13 @@ def complete(partial, context: dict | None = None) -> CompletionResult:
             if mesh is None or not len(mesh.faces):
                 candidates[name] = {"accepted": False, "why": "nothing left after the constraints"}
                 continue
-            genus = int(mesh.body_count) - int(mesh.euler_number) // 2     # summed over the pieces
-            if genus > MAX_GENUS:
-                candidates[name] = {"accepted": False, "why": f"genus {genus}: tunnels through the solid"}
-                continue
+            if genus(mesh) > MAX_GENUS:
+                sealed = seal_handles(mesh, tol)
+                if sealed is None or not is_solid(sealed) or genus(sealed) > MAX_GENUS:
+                    candidates[name] = {"accepted": False,
+                                        "why": f"genus {genus(mesh)}: tunnels through the solid"}
+                    continue
+                mesh = sealed
             from .coverage import fit_quality
 
             rms, inl = fit_quality(mesh, points, tol)
