@@ -24,6 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import append_results, markdown_table  # noqa: E402
 from psimap.camera import look_at
+from psimap.data.synthetic_shapes import solid_mug
 
 SHARED_YCB = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycb"
 VOXEL = 0.005
@@ -36,19 +37,6 @@ def _solid(mesh):
     from psimap.completion.meshops import from_manifold, to_manifold
 
     return from_manifold(to_manifold(mesh))
-
-
-def mug_mesh():
-    import trimesh
-
-    from psimap.completion.meshops import from_manifold, to_manifold
-
-    body = trimesh.creation.revolve(np.array([[0, 0], [0.04, 0], [0.04, 0.1], [0.035, 0.1],
-                                              [0.035, 0.006], [0, 0.006]]), sections=64)
-    handle = trimesh.creation.torus(0.03, 0.006, major_sections=48, minor_sections=12)
-    handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    handle.apply_translation([0.045, 0, 0.05])
-    return from_manifold(to_manifold(body) + to_manifold(handle))
 
 
 def bottle_mesh():
@@ -68,7 +56,7 @@ def synthetic_objects():
     box_a.apply_translation([0, 0, 0.08])
     box_b = trimesh.creation.box([0.08, 0.08, 0.06])
     box_b.apply_translation([0, 0, 0.03])
-    return {"box_tall": box_a, "box_low": box_b, "can": cyl, "mug": mug_mesh(), "bottle": bottle_mesh()}
+    return {"box_tall": box_a, "box_low": box_b, "can": cyl, "mug": solid_mug(), "bottle": bottle_mesh()}
 
 
 def ycb_objects():

@@ -11,6 +11,7 @@ from psimap.completion import CompletionResult, complete
 from psimap.completion.freespace import check_cameras, known_free
 from psimap.completion.meshops import (from_manifold, genus, is_solid, sample_surface, to_manifold,
                                        volume_of_intersection)
+from psimap.data.synthetic_shapes import solid_mug
 
 VOXEL = 0.005
 
@@ -270,15 +271,6 @@ def test_a_sponge_is_not_a_completion():
     assert abs(res.mesh.volume / gt.volume - 1) < 0.1
 
 
-def _mug():
-    body = trimesh.creation.revolve(np.array([[0, 0], [0.04, 0], [0.04, 0.1], [0.035, 0.1],
-                                              [0.035, 0.006], [0, 0.006]]), sections=64)
-    handle = trimesh.creation.torus(0.03, 0.006, major_sections=48, minor_sections=12)
-    handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    handle.apply_translation([0.045, 0, 0.05])
-    return from_manifold(to_manifold(body) + to_manifold(handle))
-
-
 def _backproject(cam, depth):
     K, c2w, w, h = cam
     v, u = np.nonzero(depth > 0)
@@ -288,7 +280,7 @@ def _backproject(cam, depth):
 
 
 def test_mug_handle_left_out_by_the_cylinder_is_added_back():
-    gt = _mug()
+    gt = solid_mug()
     # Two depth views from the handle side and above: the inside is seen over the rim, and the
     # free space those views observe carves the cavity out of any solid fit.
     cams = [_camera(np.array([0.25, -0.3, 0.3]), [0.01, 0, 0.05], w=160, h=120, f=200.0),

@@ -227,6 +227,18 @@ def mug(rng: np.random.Generator, max_height: float = math.inf) -> Shape:
     return Shape("mug", solid, (reach, reach), h, round=True, radius=reach)
 
 
+def solid_mug():
+    """A fixed mug as a watertight trimesh without its cavity (radius 4 cm, 10 cm tall, a torus
+    handle on +x): the shape the completion tests and benchmark complete, where the generator's
+    `mug` varies with the scene's rng."""
+    import manifold3d as m3d
+
+    profile = [(0, 0), (0.04, 0), (0.04, 0.1), (0.035, 0.1), (0.035, 0.006), (0, 0.006)]
+    body = m3d.Manifold.revolve(m3d.CrossSection([profile]), 64)
+    handle = m3d.Manifold.revolve(m3d.CrossSection.circle(0.006, 12).translate([0.03, 0]), 48)
+    return to_trimesh(body + handle.rotate([90, 0, 0]).translate([0.045, 0, 0.05]))
+
+
 FURNITURE_BUILDERS = {"table": table, "chair": chair, "shelf": shelf, "cabinet": cabinet}
 SMALL_BUILDERS = {"box": box, "bottle": bottle, "ball": ball, "mug": mug}
 
