@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 import xml.etree.ElementTree as ET
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -101,12 +102,7 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
         if not movable:
             break
         for b, depth in movable.items():
-            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)
-            el = bodies[name]
-            pos = np.array([float(x) for x in el.get("pos", "0 0 0").split()])
-            pos[2] += depth + margin
-            el.set("pos", " ".join(f"{v:.9g}" for v in pos))
-            nudges[name] = nudges.get(name, 0.0) + depth + margin
+            _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), depth + margin, nudges)
     if max_gap > 0:
         lower_onto_supports(tree, bodies, path, nudges, max_gap, min_gap=max_penetration, margin=margin,
                             max_rounds=max_rounds)
@@ -119,16 +115,35 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
     return {k: float(v) for k, v in sorted(nudges.items())}
 
 
-def _support_gaps(model, data, free: set[int], max_gap: float) -> dict[int, list[tuple[float, int]]]:
-    """{free body: [(vertical gap, body under it)]} for contacts within max_gap whose normal is
-    within 45 degrees of vertical. Reads the contacts with every geom margin raised to max_gap,
-    then restores the margins."""
+def _shift_body(bodies: dict, name: str, dz: float, nudges: dict[str, float]) -> None:
+    """Move the body element `name` by dz along +z and add dz to its nudge."""
+    el = bodies[name]
+    pos = np.array([float(x) for x in el.get("pos", "0 0 0").split()])
+    pos[2] += dz
+    el.set("pos", " ".join(f"{v:.9g}" for v in pos))
+    nudges[name] = nudges.get(name, 0.0) + dz
+
+
+@contextmanager
+def _contacts_within(model, data, gap: float):
+    """mj_forward with every geom margin raised to `gap`, so `data.contact` lists the pairs closer
+    than that (dist > 0 for the ones apart); the margins and the state are restored after."""
     import mujoco
 
     margin0 = model.geom_margin.copy()
-    model.geom_margin[:] = np.maximum(margin0, max_gap)
+    model.geom_margin[:] = np.maximum(margin0, gap)
     try:
         mujoco.mj_forward(model, data)
+        yield data
+    finally:
+        model.geom_margin[:] = margin0
+        mujoco.mj_forward(model, data)
+
+
+def _support_gaps(model, data, free: set[int], max_gap: float) -> dict[int, list[tuple[float, int]]]:
+    """{free body: [(vertical gap, body under it)]} for contacts within max_gap whose normal is
+    within 45 degrees of vertical."""
+    with _contacts_within(model, data, max_gap):
         gaps: dict[int, list[tuple[float, int]]] = {}
         for i in range(data.ncon):
             c = data.contact[i]
@@ -137,8 +152,6 @@ def _support_gaps(model, data, free: set[int], max_gap: float) -> dict[int, list
             for body, other, up in ((b2, b1, nz), (b1, b2, -nz)):
                 if body in free and up >= np.sqrt(0.5):      # only what lies under a body supports it
                     gaps.setdefault(body, []).append((float(c.dist) / up, other))
-    finally:
-        model.geom_margin[:] = margin0
     return gaps
 
 
@@ -166,12 +179,7 @@ def lower_onto_supports(tree, bodies: dict, path: Path, nudges: dict[str, float]
         if not drop:
             return
         for b, d in drop.items():
-            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)
-            el = bodies[name]
-            pos = np.array([float(x) for x in el.get("pos", "0 0 0").split()])
-            pos[2] -= d
-            el.set("pos", " ".join(f"{v:.9g}" for v in pos))
-            nudges[name] = nudges.get(name, 0.0) - d
+            _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), -d, nudges)
 
 
 def _model_from_tree(tree, path: Path):
@@ -212,14 +220,9 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     min_dist, _, _ = _penetrations(model, data)
-    # "resting" = within support_gap of something at t = 0 (a reconstruction leaves mm gaps):
-    # read contacts once with an enlarged margin, then restore the model
-    margin0 = model.geom_margin.copy()
-    model.geom_margin[:] = np.maximum(margin0, support_gap)
-    mujoco.mj_forward(model, data)
-    _, _, touching = _penetrations(model, data)
-    model.geom_margin[:] = margin0
-    mujoco.mj_forward(model, data)
+    # "resting" = within support_gap of something at t = 0 (a reconstruction leaves mm gaps)
+    with _contacts_within(model, data, support_gap):
+        _, _, touching = _penetrations(model, data)
     free = _free_bodies(model)
     # static objects (welded to the world, with colliders) are supports, never movers
     static_bodies = sorted({mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[g]))
