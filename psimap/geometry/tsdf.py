@@ -115,6 +115,29 @@ def clean_components(mesh, keep_fraction: float = 0.05, min_area: float = 0.0):
     return out
 
 
+def canonical_order(vertices, faces, colors=None):
+    """Vertices [V,3] sorted by position, faces [F,3] renumbered, each rotated to start at its
+    smallest index (winding kept) and sorted; colors [V,C] follow their vertices.
+
+    Open3D's parallel hash map emits the same surface in a run-dependent order, and area-weighted
+    sampling of a mesh (the geometry metrics) depends on face order: sorting makes the mesh, and
+    everything measured on it, reproducible.
+    """
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if len(v) == 0:
+        return v, f, colors
+    order = np.lexsort(v.T[::-1])
+    rank = np.empty(len(v), dtype=np.int64)
+    rank[order] = np.arange(len(v))
+    f = rank[f] if len(f) else f.astype(np.int64)
+    if len(f):
+        roll = np.argmin(f, axis=1)
+        f = np.stack([f[np.arange(len(f)), (roll + k) % 3] for k in range(3)], axis=1)
+        f = f[np.lexsort(f.T[::-1])]
+    return v[order], f, (None if colors is None else np.asarray(colors)[order])
+
+
 def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequence[np.ndarray], *,
               colors: Sequence[np.ndarray] | None = None, masks: Sequence[np.ndarray] | None = None,
               voxel_size: float | None = None, trunc: float | None = None,
@@ -201,6 +224,7 @@ def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequ
     if use_color and tm.has_vertex_colors() and len(v):
         vc = (np.clip(np.asarray(tm.vertex_colors), 0, 1) * 255).round().astype(np.uint8)
         vc = np.concatenate([vc, np.full((len(vc), 1), 255, np.uint8)], 1)
+    v, f, vc = canonical_order(v, f, vc)
     mesh = trimesh.Trimesh(vertices=v, faces=f, vertex_colors=vc, process=False)
     if len(mesh.faces):
         mesh.merge_vertices()
