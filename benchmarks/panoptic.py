@@ -103,21 +103,22 @@ def run_psimap(scene, frames, iters, cfg, seed):
     from psimap.panoptic.field import fit_panoptic
 
     surf = {k: scene.surfels[k].float() for k in ("means", "quats", "scales", "opacities")}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     state = fit_panoptic(surf, frames, scene.classes, iters=iters, cfg=cfg, seed=seed, backend="auto")
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     torch.set_num_threads(torch.get_num_threads())
     s = state["surfels"]
-    return with_labels(scene, s["instance_id"], s["semantic_id"]), dt, int(state["queries"]["feature"].shape[0])
+    return (with_labels(scene, s["instance_id"], s["semantic_id"]), dt, cpu,
+            int(state["queries"]["feature"].shape[0]))
 
 
 def run_baseline(scene, frames):
     from psimap.panoptic.baseline import baseline_panoptic
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     out = baseline_panoptic(scene.surfels["means"], frames, scene.classes)
-    dt = time.perf_counter() - t0
-    return with_labels(scene, out["instance_id"], out["semantic_id"]), dt, out["segments"]
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return with_labels(scene, out["instance_id"], out["semantic_id"]), dt, cpu, out["segments"]
 
 
 def n_instances(scene) -> int:
@@ -208,13 +209,13 @@ def main() -> None:
             visible = len({int(i) for f in frames for i in np.unique(f.gt_instance) if i > 0})
             for method in ("psimap", "baseline"):
                 if method == "psimap":
-                    pred, dt, count = run_psimap(geom, frames, args.iters, cfg, seed)
+                    pred, dt, cpu, count = run_psimap(geom, frames, args.iters, cfg, seed)
                 else:
-                    pred, dt, count = run_baseline(geom, frames)
+                    pred, dt, cpu, count = run_baseline(geom, frames)
                 m, _ = score(pred, frames, things)
                 inst = n_instances(pred)
                 row = [seed, f"{noise:.0%}", method, m["pq"], m["sq"], m["rq"], m["pq_thing"], m["miou"],
-                       m["mcov"], dt, count, inst, visible, oracle["pq"]]
+                       m["mcov"], dt, cpu, count, inst, visible, oracle["pq"]]
                 rows.append(row)
                 per_method.setdefault((method, noise), []).append(row)
                 print(markdown_table(HEADER, [row]).splitlines()[-1], flush=True)
@@ -225,16 +226,17 @@ def main() -> None:
                         print(f"  top-k {topk_rows[-1][0]}: PQ {mk['pq']:.4f} {t * 1000:.1f} ms/frame", flush=True)
     mean_rows = []
     for (method, noise), rs in sorted(per_method.items(), key=lambda kv: (kv[0][1], kv[0][0])):
-        a = np.array([r[3:12] for r in rs], dtype=float)
-        mean_rows.append([f"{noise:.0%}", method, *a.mean(0).tolist(), float(np.mean([r[12] for r in rs]))])
+        a = np.array([r[3:13] for r in rs], dtype=float)
+        mean_rows.append([f"{noise:.0%}", method, *a.mean(0).tolist(), float(np.mean([r[13] for r in rs]))])
     cmd = "python benchmarks/panoptic.py " + " ".join(sys.argv[1:])
     notes = (f"{args.frames} frames {width}x{height} per scene (room surfel spacing x{args.coarsen}), seeds {args.seeds}; fit_panoptic iters "
              f"{args.iters}, PanopticConfig overrides {over or 'none'}; geometry = GT surfels "
              f"(scene_from_meshes). 'queries' = final query count (baseline: merged 3D segments), "
              f"'instances' = instance ids on surfels after export, 'objects' = GT objects seen by a frame. "
              f"Oracle = GT surfel labels rendered the same way. Labels rendered at {DEFAULT_SUPERSAMPLE}x"
-             f"{DEFAULT_SUPERSAMPLE} samples per pixel (psimap.panoptic.labels). Times are wall seconds "
-             f"on a CPU shared with other jobs (load average at start / end: {load0} / {_load()}).")
+             f"{DEFAULT_SUPERSAMPLE} samples per pixel (psimap.panoptic.labels). 'train s' is wall time, "
+             f"'train CPU s' process CPU time (single-threaded fit: compare this column), on a CPU shared "
+             f"with other jobs (load average at start / end: {load0} / {_load()}).")
     if topk_rows:
         OUT_DIR.mkdir(exist_ok=True)
         plot_topk(topk_rows, OUT_DIR / "panoptic_topk.png")
@@ -288,10 +290,10 @@ def _load() -> str:
     return " ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
-HEADER = ["seed", "noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "queries",
-          "instances", "objects", "oracle PQ"]
-MEAN_HEADER = ["noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "queries",
-               "instances", "objects"]
+HEADER = ["seed", "noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "train CPU s",
+          "queries", "instances", "objects", "oracle PQ"]
+MEAN_HEADER = ["noise", "method", "PQ", "SQ", "RQ", "PQ_th", "mIoU", "mCov", "train s", "train CPU s",
+               "queries", "instances", "objects"]
 
 if __name__ == "__main__":
     main()

@@ -368,3 +368,35 @@ def test_spawned_query_starts_from_its_surfels_features_and_wins_them():
         own = f2.queries.distribution(feat, pos).argmax(-1)
         assert (own[50:] == bottle_owner).all(), (spawn_feat, own[50:])
         assert (own[:50] == 0).float().mean() > 0.9
+
+
+@pytest.mark.parametrize("query_class, mug_class", [(True, 2), (False, 1)])
+def test_instance_class_comes_from_the_masks_its_query_matched(query_class, mug_class):
+    from types import SimpleNamespace
+
+    from psimap.panoptic.field import PanopticConfig, PanopticField
+
+    # two surfels, one pixel each: a table (class 1) and a mug (class 2) whose surfel semantics
+    # were dragged to "table" (merged masks); the mug's query is matched to "mug" masks
+    classes = [{"id": 1, "name": "table", "isthing": True}, {"id": 2, "name": "mug", "isthing": True}]
+    feat = torch.eye(2, 4)
+    q = InstanceQueries(feat, torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]]), torch.eye(3).expand(2, 3, 3) * 0.3,
+                        temperature=0.1)
+    cfg = PanopticConfig(feat_dim=4, topk=2, min_instance_surfels=1, query_class=query_class)
+    f = PanopticField(2, classes, q, cfg)
+    with torch.no_grad():
+        f.instance.copy_(5 * feat)
+        f.semantic.copy_(torch.tensor([[3.0, 0.0], [3.0, 0.0]]))
+    means = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
+
+    def render(idx, feats, topk):
+        return SimpleNamespace(features=feats.unsqueeze(0), alpha=torch.ones(1, 2))
+
+    for _ in range(3):
+        f.losses(render, means, torch.arange(2), torch.tensor([[1, 2]]), torch.tensor([[1, 2]]),
+                 torch.eye(3), torch.eye(4), 2, 1)
+    lab = f.assign(means)
+    mug = int(lab["instance_id"][1])
+    assert mug > 0 and lab["instance_class"][mug] == mug_class
+    assert int(lab["semantic_id"][1]) == mug_class
+    assert lab["instance_class"][int(lab["instance_id"][0])] == 1

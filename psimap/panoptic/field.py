@@ -61,6 +61,11 @@ class PanopticConfig:
     # semantic heads combined, instead of p(q | g) alone (a mug's border surfels won by the table's
     # query but whose semantics say "mug" go to the mug)
     class_fusion: bool = True
+    # an instance's class = the majority class of the 2D masks its query was matched to (a merged
+    # mask goes to the larger object's query, so its class does not leak onto the smaller object,
+    # whose surfels' own semantics it does drag: a mug's pixels were 49 % "table" at 15 % noise);
+    # False = majority of the instance's surfels' semantic argmax
+    query_class: bool = True
     spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
     spawn_feature: bool = True      # a spawned query starts from its mask's surfels' features
     max_spawn_per_step: int = 2
@@ -162,6 +167,8 @@ class PanopticField(nn.Module):
         self.same = torch.zeros(queries.count, queries.count)
         self.apart = torch.zeros(queries.count, queries.count)
         self.comatched = torch.zeros(queries.count, queries.count)   # both matched in one frame
+        # [Q, S] frames in which each query was matched to a mask of each class column
+        self.class_votes = torch.zeros(queries.count, self.class_ids.numel())
         self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
         self.steps = 0
         # (point set [P, 3], feature [F] or None) of masks that no query covers
@@ -210,6 +217,7 @@ class PanopticField(nn.Module):
         self.same = F.pad(self.same, (0, a, 0, a))
         self.apart = F.pad(self.apart, (0, a, 0, a))
         self.comatched = F.pad(self.comatched, (0, a, 0, a))
+        self.class_votes = F.pad(self.class_votes, (0, 0, 0, a))
         self.born = torch.cat([self.born, torch.full((a,), float(self.steps))])
         self._make_optimizers()
 
@@ -339,6 +347,10 @@ class PanopticField(nn.Module):
                 self.matched[match.query_idx] += 1
                 mq = match.query_idx
                 self.comatched[mq[:, None], mq[None, :]] += 1.0
+                mc = mask_cls[match.mask_idx]
+                if s > 0 and bool((mc >= 0).any()):
+                    ok = mc >= 0
+                    self.class_votes.index_put_((mq[ok], mc[ok]), torch.ones(int(ok.sum())), accumulate=True)
                 with torch.no_grad():
                     # The 2D mask holding most (> iom_threshold) of each seen query's pixels; pairs
                     # of queries in one mask vs in different masks (see co_mask_duplicates).
@@ -437,6 +449,7 @@ class PanopticField(nn.Module):
             self.same = self.same[keep][:, keep]
             self.apart = self.apart[keep][:, keep]
             self.comatched = self.comatched[keep][:, keep]
+            self.class_votes = self.class_votes[keep]
             self.born = self.born[keep]
             self._make_optimizers()
         return removed
@@ -472,9 +485,11 @@ class PanopticField(nn.Module):
             if q:
                 aff = self.affinity_all(means)                                      # [N, Q]
                 owner = aff.argmax(-1)
+                voted = self.class_votes.sum(-1) > 0
+                qcol = torch.where(voted, self.class_votes.argmax(-1), -1) if self.cfg.query_class else None
                 if self.cfg.class_fusion and self.class_ids.numel():
                     owner = fuse_classes(aff / self.queries.temperature, self.semantic.detach(), owner,
-                                         is_thing)
+                                         is_thing, qcol)
                 owner[~is_thing] = -1
                 counts = torch.bincount(owner[owner >= 0], minlength=q)
                 kept = torch.nonzero(counts >= self.cfg.min_instance_surfels).flatten()
@@ -493,8 +508,11 @@ class PanopticField(nn.Module):
                     own = inst == j
                     members = sem[own]
                     members = members[members > 0]
-                    if members.numel():
+                    if qcol is not None and int(qcol[kept[j - 1]]) >= 0:
+                        instance_class[j] = int(self.class_ids[qcol[kept[j - 1]]])
+                    elif members.numel():
                         instance_class[j] = int(torch.mode(members).values)
+                    if j in instance_class:
                         # one class per instance (a COCO segment has one category): stray surfels
                         # of an instance, e.g. table surfels under a bottle's query, take its class
                         sem[own] = instance_class[j]
@@ -516,13 +534,14 @@ class PanopticField(nn.Module):
 
 
 def fuse_classes(logits: torch.Tensor, semantic: torch.Tensor, owner: torch.Tensor,
-                 thing: torch.Tensor) -> torch.Tensor:
+                 thing: torch.Tensor, query_class: torch.Tensor | None = None) -> torch.Tensor:
     """Instance owner [N] from both heads: argmax_q log softmax_q(logits) + log p_sem(class(q) | g).
 
     logits [N, Q] affinity / temperature; semantic [N, S] per-surfel class logits; owner [N] the
     instance-only argmax; thing [N] bool. class(q) = majority semantic class over the thing
     surfels q owns by `owner`; a query owning none stays out (it would not become an instance,
-    and with no class it would pay no semantic term).
+    and with no class it would pay no semantic term). query_class [Q] long (optional): class
+    columns known from the 2D masks each query was matched to (-1 = unknown: use the surfel vote).
     """
     n, q = logits.shape
     col = semantic.argmax(-1)
@@ -532,6 +551,8 @@ def fuse_classes(logits: torch.Tensor, semantic: torch.Tensor, owner: torch.Tens
     votes.index_put_((owner[sel], col[sel]), torch.ones(int(sel.sum())), accumulate=True)
     qcls = votes.argmax(-1)
     known = votes.sum(-1) > 0
+    if query_class is not None:
+        qcls = torch.where(query_class >= 0, query_class, qcls)
     log_sem = torch.log_softmax(semantic, -1)[:, qcls]                                  # [N, Q]
     score = torch.log_softmax(logits, -1) + torch.where(known[None, :], log_sem, torch.full_like(log_sem, -torch.inf))
     return torch.where(thing, score.argmax(-1), owner)
