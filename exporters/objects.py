@@ -391,6 +391,13 @@ def extract_scene(scene, *, completion: str = "auto", progress: bool = False, se
     scene (exporters.consistency: floor cut, overlaps removed, room-sized labels left to the
     background), then finished (`finish_object`: decimation, mass, collider, texture).
     """
+    from psimap.threads import single_threaded
+
+    with single_threaded():     # many small renders: spinning thread pools cost more than they give
+        return _extract_scene(scene, completion=completion, progress=progress, seed=seed, timings=timings, **kw)
+
+
+def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings: dict | None, **kw):
     import trimesh
     from tqdm import tqdm
 
