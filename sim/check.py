@@ -127,16 +127,21 @@ def _shift_body(bodies: dict, name: str, dz: float, nudges: dict[str, float]) ->
 @contextmanager
 def _contacts_within(model, data, gap: float):
     """mj_forward with every geom margin raised to `gap`, so `data.contact` lists the pairs closer
-    than that (dist > 0 for the ones apart); the margins and the state are restored after."""
+    than that (dist > 0 for the ones apart); the margins and the state are restored after.
+    The mid-phase (a body's tree of geom boxes, built without the runtime margin) is off meanwhile:
+    with it, a can whose six hulls all cleared the floor by 6 mm had no contact at a 2 cm margin."""
     import mujoco
 
     margin0 = model.geom_margin.copy()
+    flags0 = int(model.opt.disableflags)
     model.geom_margin[:] = np.maximum(margin0, gap)
+    model.opt.disableflags = flags0 | int(mujoco.mjtDisableBit.mjDSBL_MIDPHASE)
     try:
         mujoco.mj_forward(model, data)
         yield data
     finally:
         model.geom_margin[:] = margin0
+        model.opt.disableflags = flags0
         mujoco.mj_forward(model, data)
 
 
