@@ -213,6 +213,25 @@ def test_density_control_clone_split_prune_budget():
     assert set(PARAM_NAMES) == set(params)
 
 
+def test_geo_weight_schedule(scene_frames):
+    """L_geo's weight is lambda_geo x geo_scale: half at 0.5, gone at 0 (the default schedule ends
+    there, so the depth has the last word on fine geometry)."""
+    from psimap.train.trainer import init_from_prior, loss_terms, prepare_frames, target_spacing
+
+    frames, _ = scene_frames
+    c = cfg()
+    tf, _, _ = prepare_frames(sequence(frames), c, log=lambda m: None)
+    spacing = target_spacing(tf, c.spacing_pixels)
+    params, index, _ = init_from_prior(tf, c, spacing, log=lambda m: None)
+    with torch.no_grad():                      # move surfels off the prior so L_geo is not ~0
+        params["means"] += 0.01 * torch.randn(params["means"].shape, generator=torch.Generator().manual_seed(0))
+    full = loss_terms(params, tf[0], c, index, spacing, False, geo_scale=1.0)[0]["geo"]
+    half = loss_terms(params, tf[0], c, index, spacing, False, geo_scale=0.5)[0]["geo"]
+    assert full.item() > 1e-3 and half.item() == pytest.approx(0.5 * full.item(), rel=1e-6)
+    assert "geo" not in loss_terms(params, tf[0], c, index, spacing, False, geo_scale=0.0)[0]
+    assert TrainConfig().geo_final == 0.0
+
+
 def test_losses():
     g = torch.Generator().manual_seed(0)
     a = torch.rand(20, 24, 3, generator=g)

@@ -37,6 +37,10 @@ class TrainConfig:
     geo_candidates: int = _f(1, "L_geo's component of a surfel: 1 = nearest component mean; k > 1 = "
                                 "the most likely of the k nearest (near a crease the nearest mean can "
                                 "be the other face's patch)")
+    geo_final: float = _f(0.0, "L_geo's weight at the last step, as a fraction of lambda_geo (linear "
+                               "schedule; 1 = constant). 0: the prior guides early and the depth refines "
+                               "last; on the demo scenes (seeds 0 / 1) Chamfer-L1 1.292 -> 1.282 and "
+                               "3.679 -> 3.672 cm, F1 0.9650 -> 0.9653 and 0.9322 -> 0.9328")
     geo_inlier: float = _f(0.0, "L_geo ignores a surfel farther than this many SOGMM residual budgets "
                                 "from its component's plane (it lies on another surface: a thin "
                                 "part's side, across a crease); 0 = every surfel counts")

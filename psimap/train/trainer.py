@@ -262,8 +262,9 @@ def render(params: dict, fr: TrainFrame, need_features: bool = False):
 
 def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: float,
                regularize: bool, generator: torch.Generator | None = None,
-               geo_samples: int = 8192) -> tuple[dict, object]:
-    """Weighted loss terms of one view (name -> scalar tensor) and the render output."""
+               geo_samples: int = 8192, geo_scale: float = 1.0) -> tuple[dict, object]:
+    """Weighted loss terms of one view (name -> scalar tensor) and the render output; L_geo's weight
+    is cfg.lambda_geo x geo_scale (its schedule)."""
     out = render(params, fr)
     terms = {}
     terms["rgb"] = cfg.lambda_rgb * L.rgb_loss(out.rgb, fr.rgb, cfg.ssim_weight)
@@ -275,14 +276,14 @@ def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: f
     scales = params["log_scales"].exp()
     if cfg.lambda_iso > 0:
         terms["iso"] = cfg.lambda_iso * L.iso_loss(scales, spacing)
-    if cfg.use_prior and cfg.lambda_geo > 0 and index is not None:
+    if cfg.use_prior and cfg.lambda_geo * geo_scale > 0 and index is not None:
         from psimap.geometry.sogmm import geo_loss
 
         n = params["means"].shape[0]
         # an unbiased estimate of the mean over a random subset keeps the per-step cost bounded
         sub = torch.randperm(n, generator=generator)[:geo_samples] if n > geo_samples else slice(None)
         R = quat_to_rotmat(params["quats"][sub])
-        terms["geo"] = cfg.lambda_geo * geo_loss(params["means"][sub], R[:, :, 2], index,
+        terms["geo"] = cfg.lambda_geo * geo_scale * geo_loss(params["means"][sub], R[:, :, 2], index,
                                                  lambda_n=cfg.lambda_geo_normal,
                                                  candidates=cfg.geo_candidates,
                                                  inlier=_geo_inlier(cfg, index))
@@ -405,7 +406,10 @@ def _train(data, cfg, *, resume, progress, log, callback):
     for step in range(iters):
         fi = int(order[step])
         fr = low[fi] if step < lowres_steps else frames[fi]
-        terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen)
+        # L_geo's weight goes linearly from lambda_geo to geo_final x lambda_geo over the schedule
+        geo_scale = 1.0 + (cfg.geo_final - 1.0) * step / max(iters - 1, 1)
+        terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen,
+                                geo_scale=geo_scale)
         bad = L.first_nonfinite(terms)
         if bad is None:
             loss = sum(terms.values())
