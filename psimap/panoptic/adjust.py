@@ -6,7 +6,9 @@ inside a larger query's mask, measured by intersection over mask IoM_ij = |M_i &
 3D masks use the un-normalised affinity A(q, g) > threshold, so masks of different queries can
 overlap (an argmax partition never would, and IoM would always be 0). Co-mask duplicate: two
 queries that have each won a part of one object (their 3D masks no longer overlap) but are drawn
-inside the same 2D mask in most frames that see both. "Visible" means the query owns (p > 0.5) at
+inside the same 2D mask in most frames that see both. Queries matched to two different 2D masks
+of one frame in several frames are distinct objects and never duplicates of each other (a box's
+query lies inside the 3D mask of the table it stands on). "Visible" means the query owns (p > 0.5) at
 least a small mask in the frame; the field logs how many queries each rule drops.
 """
 from __future__ import annotations

@@ -464,10 +464,13 @@ class PanopticField(nn.Module):
     def assign(self, means: torch.Tensor) -> dict:
         """Hard labels for the checkpoint.
 
-        semantic_id [N] = class of the largest logit; instance_id [N] = 1 + the query of largest
-        affinity for thing surfels (0 for stuff), renumbered 1..I over instances with at least
-        `min_instance_surfels` surfels (their queries are `kept` [I]; the others own nothing);
-        instance_class {id: class id by majority vote}, also written to the instance's surfels.
+        semantic_id [N] = class of the largest logit; instance_id [N] = the query of largest
+        affinity for thing surfels (0 for stuff; with `class_fusion` the affinity softmax times the
+        surfel's probability of the query's class), renumbered 1..I over instances with at least
+        `min_instance_surfels` surfels (their queries are `kept` [I]; the others own nothing), then
+        smoothed over 3D neighbours (`smooth_k`); instance_class {id: class id}: the majority class
+        of the 2D masks the query was matched to (`query_class`), else of the instance's surfels;
+        written to the instance's surfels.
         """
         n = means.shape[0]
         with torch.no_grad():
