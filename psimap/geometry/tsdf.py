@@ -80,7 +80,8 @@ def derive_params(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: 
 # Whole-scene cleaning (Scene.mesh and the raw-depth baseline): a scene is many separate objects, so
 # a component is judged by its own size, not against the largest one. Measured on the seed-1 demo
 # scene: the 5 %-of-largest rule dropped the table top (its thin legs do not mesh, so it floats;
-# 1.6 % of the room's triangles) and everything on it: completeness 7.01 -> 6.28 cm without it.
+# 1.6 % of the room's triangles) and everything on it: completeness 7.10 -> 6.44 cm without it
+# (benchmarks/RESULTS.md, geometry follow-up).
 SCENE_KEEP_FRACTION = 0.0
 # Components smaller than this many voxel faces (2 x 2 voxels) cannot be told from a noise blob at
 # the fusion's resolution and are dropped.
