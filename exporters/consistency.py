@@ -8,7 +8,10 @@ before decimation and colliders:
 - the floor: everything below the background's floor plane is cut off (manifold3d);
 - overlaps: where two solids intersect, the larger one keeps the shared volume and it is cut out of
   the smaller one (a small object is what stands on or leans against the big one); an object left
-  with under `min_keep` of its volume was inside the other and is skipped;
+  with under `min_keep` of its volume was inside the other and is skipped. Except a carved solid
+  (exporters.solidify: everything no view saw through, an upper bound) yields to one built from its
+  own observed surface: a table carved around the box standing on it holds the box's lower half;
+  cut from the box instead, the box hovers over the table's collider and falls;
 - room-sized instances: an "object" wider than `max_extent` is not an object a robot moves (a
   merged label of many things, or furniture fused with the room) and is skipped with the reason.
 Then, while the objects are finished biggest first, each solid is cut by the colliders of the
@@ -96,9 +99,13 @@ def make_consistent(objects, floor_z: float | None = None, *, max_extent: float 
             shared = float((a ^ b).volume())
             if shared < MIN_OVERLAP:
                 continue
-            cut = _to_trimesh(b - a)
-            _apply_cut(small, cut, min_keep,
-                       f"overlap with {big.name} removed ({shared * 1e6:.1f} cm3)", f"inside {big.name}")
+            keeper, loser, ka, kb = big, small, a, b
+            if big.solid_kind == "carved" and small.solid_kind != "carved":
+                keeper, loser, ka, kb = small, big, b, a
+            _apply_cut(loser, _to_trimesh(kb - ka), min_keep,
+                       f"overlap with {keeper.name} removed ({shared * 1e6:.1f} cm3)", f"inside {keeper.name}")
+            if big.skipped:
+                break
 
 
 def _apply_cut(obj, cut, min_keep: float, step: str, swallowed: str) -> None:

@@ -47,6 +47,7 @@ class SceneObject:
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
     timings: dict = field(default_factory=dict, repr=False)   # seconds per asset step
     solid_pitch: float = 0.0                # voxel (m) of the solid it was closed as (0: not voxelised)
+    solid_kind: str = ""                    # how (exporters.solidify): "enclosed" | "carved" | "shell" | ""
 
     @property
     def name(self) -> str:
@@ -138,6 +139,7 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
     if "solidify" in getattr(m, "metadata", {}):
         # a voxel solid is known to one voxel: decimation need not keep its staircase finer
         obj.solid_pitch = float(solid_kw["pitch"])
+        obj.solid_kind = str(m.metadata["solidify"])
     if support is not None:
         m, grew = rest_on_support(m, float(support))
         if grew:

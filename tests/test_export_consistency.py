@@ -125,6 +125,23 @@ def test_overlap_is_cut_from_the_smaller_solid():
     assert any("overlap with table_1" in s for s in bottle.repair_steps)
 
 
+def test_carved_solid_yields_to_an_observed_one():
+    # a table carved from free space holds the lower half of the box standing on it (no view saw
+    # through the box): the box, closed from its own surface, keeps the shared volume
+    table = _obj(_box([1.0, 0.6, 0.05], [0, 0, 0.725]), 1, "table")
+    table.mesh = trimesh.boolean.union([table.mesh, _box([0.1, 0.1, 0.05], [0.1, 0, 0.775])], engine="manifold")
+    table.solid_kind = "carved"
+    box = _obj(_box([0.1, 0.1, 0.1], [0.1, 0, 0.8]), 2, "box")
+    box.solid_kind = "enclosed"
+    v_box = box.mesh.volume
+    make_consistent([box, table], floor_z=0.0)
+    assert not box.skipped and not table.skipped
+    assert box.mesh.volume == pytest.approx(v_box)
+    assert table.mesh.volume == pytest.approx(1.0 * 0.6 * 0.05, rel=1e-4)     # the bump is gone
+    assert table.mesh.is_watertight and table.mesh.bounds[1, 2] == pytest.approx(0.75, abs=1e-6)
+    assert any("overlap with box_2" in s for s in table.repair_steps)
+
+
 def test_floor_cut_swallowed_and_room_sized_objects():
     below = _obj(_box([0.2, 0.2, 0.2], [0, 0, 0.05]), 1)           # 5 cm below the floor
     inside = _obj(_box([0.05, 0.05, 0.05], [0.0, 0.0, 0.1]), 2)    # inside `below`

@@ -135,3 +135,19 @@ def test_multi_part_body_hovering_is_found_and_lowered(tmp_path):
     r = check_mjcf(_write(tmp_path, text))
     assert r["nudges"]["box"] == pytest.approx(-0.006, abs=3e-4)
     assert r["passed"] and r["unsupported"] == [] and r["max_drift"] < 1e-3
+
+
+def test_gap_between_convex_meshes_is_read_exactly(tmp_path):
+    # a box-shaped convex mesh 12 mm above a static slab mesh, off-centre: the gap comes from rays
+    # cast down, not from MuJoCo's approximate contact distance at an enlarged margin
+    corners = " ".join(f"{x} {y} {z}" for x in (-0.05, 0.05) for y in (-0.04, 0.04) for z in (-0.03, 0.03))
+    slab = " ".join(f"{x} {y} {z}" for x in (-0.3, 0.3) for y in (-0.2, 0.2) for z in (-0.02, 0.02))
+    text = f"""<mujoco><option timestep="0.002"/><asset><mesh name="cube" vertex="{corners}"/>
+<mesh name="slab" vertex="{slab}"/></asset><worldbody>
+<geom name="floor" type="plane" size="0 0 0.05"/>
+<body name="table" pos="0 0 0.5"><geom type="mesh" mesh="slab"/></body>
+<body name="box" pos="0.2 0.1 {0.52 + 0.012 + 0.03}"><freejoint/><geom type="mesh" mesh="cube" mass="0.3"/></body>
+</worldbody></mujoco>"""
+    r = check_mjcf(_write(tmp_path, text))
+    assert r["nudges"]["box"] == pytest.approx(-0.012, abs=3e-4)
+    assert r["passed"] and r["max_drift"] < 1e-3
