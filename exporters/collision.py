@@ -224,7 +224,7 @@ def penetrates(parts, obstacles, max_penetration: float = 1e-3) -> bool:
 # (resolution 2000, 150 MCTS iterations, preprocessing) cost tens of seconds; the fit is measured
 # afterwards against the full mesh, so a coarse call can only lose to the hull, never pass falsely.
 COACD_FACES = 600
-BUDGET_DIAGONAL = 0.5           # m: objects larger than this get a proportionally larger CoACD budget
+BUDGET_DIAGONAL = 0.5           # m: larger objects get proportionally more CoACD faces and time
 COACD_OPTIONS = {"preprocess_mode": "off", "resolution": 300, "mcts_iterations": 12, "mcts_nodes": 8,
                  "mcts_max_depth": 2}
 
@@ -269,9 +269,12 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
     import time
 
     t_start = time.process_time()
-    # furniture is what everything else rests on: a 1.4 m table got 4 hulls 33 cm off its surface
-    # from one object's budget, and a box on it fell 4 cm onto what was left
-    time_budget *= float(np.clip(np.linalg.norm(mesh.extents) / BUDGET_DIAGONAL, 1.0, 4.0))
+    # furniture is what everything else rests on: a 1.6 m table decimated to the small objects' 600
+    # faces for CoACD lost its top under a box by up to 4 cm (its hulls ended 0.649-0.696 m where
+    # the top is 0.69-0.708 m; 0.709-0.714 m from 2400 faces, at the same CoACD time), and the box
+    # fell: larger objects get proportionally more faces and time
+    scale = float(np.clip(np.linalg.norm(mesh.extents) / BUDGET_DIAGONAL, 1.0, 4.0))
+    time_budget *= scale
     from psimap.exporters.decimate import _dist_to
 
     tol = default_tolerance(mesh) if tolerance is None else float(tolerance)
@@ -347,7 +350,7 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
         if time.process_time() - t_start + 3.0 * last > time_budget:
             break
         t_call = time.process_time()
-        raw = _coacd(mesh, thr, max_hulls, seed)
+        raw = _coacd(mesh, thr, max_hulls, seed, max_faces=int(COACD_FACES * scale))
         last = time.process_time() - t_call
         parts = clipped([limit_hull_vertices(p) for p in raw])
         if not parts:

@@ -171,6 +171,22 @@ def test_decomposition_stops_when_the_hull_cap_binds(monkeypatch):
     assert calls == [0.3] and c.hull_count == 2 and c.error > c.tolerance
 
 
+def test_large_objects_get_more_coacd_faces(monkeypatch):
+    # a table-sized U is decimated for CoACD to proportionally more faces than a cup-sized one (a
+    # 1.6 m table at the small objects' 600 faces lost its top by up to 4 cm)
+    seen = []
+    real = C._coacd
+    monkeypatch.setattr(C, "_coacd", lambda *a, **k: seen.append(k["max_faces"]) or real(*a, **k))
+    U = trimesh.boolean.union([trimesh.creation.box(extents=[0.3, 0.06, 0.06]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([0.12, 0, 0.18]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([-0.12, 0, 0.18])],
+                              engine="manifold")
+    C.collision_geometry(U, 1e-3, coacd_thresholds=(0.3,))
+    big = U.copy().apply_scale(5.0)                       # 2.3 m across: 4x the faces (the cap)
+    C.collision_geometry(big, 5e-3, coacd_thresholds=(0.3,))
+    assert seen == [C.COACD_FACES, 4 * C.COACD_FACES]
+
+
 def test_hull_vertex_limit():
     s = trimesh.creation.icosphere(4, radius=0.1)
     h = C.limit_hull_vertices(s, 64)
