@@ -280,7 +280,11 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
         plot_pan = plot
         if plot and do_geometry:
             plot_pan = str(Path(plot).with_name(Path(plot).stem + "_panoptic" + Path(plot).suffix))
-        out["panoptic"] = evaluate_panoptic(_RenderedLabels(scene, seq), data, progress=progress, plot=plot_pan)
+        from psimap.threads import single_threaded
+
+        with single_threaded():     # one label render per frame: spinning pools cost more than they give
+            out["panoptic"] = evaluate_panoptic(_RenderedLabels(scene, seq), data, progress=progress,
+                                                plot=plot_pan)
     return out
 
 
