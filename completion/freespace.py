@@ -52,26 +52,36 @@ def cameras_seeing(cameras, lo: np.ndarray, hi: np.ndarray):
     return keep
 
 
+def _depth_at(points: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(z [Q], observed depth d [Q], valid [Q]) of world points [Q, 3] in one camera (K, c2w, w, h,
+    depth): z their own z-depth, d the depth map at their pixel; valid = in front, inside the image,
+    a finite positive depth there (invalid returns are 0 or non-finite)."""
+    K, c2w, w, h, depth = cam
+    pc = (points - c2w[:3, 3]) @ c2w[:3, :3]         # world -> camera: R^T (x - t), row form
+    z = pc[:, 2]
+    ok = z > 1e-6
+    zs = np.where(ok, z, 1.0)
+    u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 2])
+    v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2])
+    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(points))
+    d[ok] = depth[v[ok].astype(np.int64), u[ok].astype(np.int64)]
+    return z, d, ok & np.isfinite(d) & (d > 0)
+
+
 def known_free(points: np.ndarray, cameras, tolerance: float) -> np.ndarray:
-    """points [Q, 3] world; cameras from `check_cameras`. Returns [Q] bool: seen empty by a camera."""
+    """points [Q, 3] world; cameras from `check_cameras`. Returns [Q] bool: seen empty by a camera.
+    Each camera only tests the points no earlier one saw empty (the answer is an "any")."""
     points = np.asarray(points, dtype=np.float64)
     free = np.zeros(len(points), dtype=bool)
-    for K, c2w, w, h, depth in cameras:
-        R, t = c2w[:3, :3], c2w[:3, 3]
-        pc = (points - t) @ R               # world -> camera: R^T (x - t), row form
-        z = pc[:, 2]
-        ok = z > 1e-6
-        u = np.full(len(points), -1, dtype=np.int64)
-        v = np.full(len(points), -1, dtype=np.int64)
-        zs = np.where(ok, z, 1.0)
-        u[ok] = np.floor(K[0, 0] * pc[ok, 0] / zs[ok] + K[0, 2]).astype(np.int64)
-        v[ok] = np.floor(K[1, 1] * pc[ok, 1] / zs[ok] + K[1, 2]).astype(np.int64)
-        ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        d = np.zeros(len(points))
-        d[ok] = depth[v[ok], u[ok]]
-        # Pixel depth is z-depth (OpenCV); invalid returns are 0 or non-finite.
-        ok &= np.isfinite(d) & (d > 0)
-        free |= ok & (z < d - tolerance)
+    todo = np.arange(len(points))
+    for cam in cameras:
+        if len(todo) == 0:
+            break
+        z, d, ok = _depth_at(points[todo], cam)
+        hit = ok & (z < d - tolerance)
+        free[todo[hit]] = True
+        todo = todo[~hit]
     return free
 
 
@@ -80,17 +90,8 @@ def seen_on_surface(points: np.ndarray, cameras, tolerance: float) -> np.ndarray
     depth within `tolerance` of their own depth. Returns [Q] bool."""
     points = np.asarray(points, dtype=np.float64)
     seen = np.zeros(len(points), dtype=bool)
-    for K, c2w, w, h, depth in cameras:
-        pc = (points - c2w[:3, 3]) @ c2w[:3, :3]
-        z = pc[:, 2]
-        ok = z > 1e-6
-        zs = np.where(ok, z, 1.0)
-        u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 2])
-        v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2])
-        ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        d = np.zeros(len(points))
-        d[ok] = depth[v[ok].astype(np.int64), u[ok].astype(np.int64)]
-        ok &= np.isfinite(d) & (d > 0)
+    for cam in cameras:
+        z, d, ok = _depth_at(points, cam)
         seen |= ok & (np.abs(z - d) <= tolerance)
     return seen
 
