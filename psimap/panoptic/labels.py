@@ -198,7 +198,10 @@ def write_labels(scene, frames_or_data, out_dir, *, topk: int | None = None, bac
             inst, sem = render_labels(scene, K, c2w, w, h, topk=topk, backend=backend)
             yield stem, inst, sem
 
-    with atomic_dir(out_dir) as tmp:
+    from psimap.threads import single_threaded
+
+    # one small render per frame: spinning thread pools cost more than they give (psimap.threads)
+    with single_threaded(), atomic_dir(out_dir) as tmp:
         write_coco_panoptic(tmp, rendered(), scene.classes, votes)
     return out_dir / "panoptic.json"
 
