@@ -569,15 +569,12 @@ def normal_alignment(n, n_ref):
 
 
 def geo_loss(means, normals, index: SOGMMIndex, lambda_n: float = 0.1, reduction: str = "mean",
-             candidates: int = 1, inlier: float | None = None):
+             candidates: int = 1):
     """L_geo = sum_i d(mu_i, M_k(i)) + lambda_n (1 - |n_i . n_k(i)|), k(i) = index.nearest(mu_i,
     candidates) (nearest mean, or the most likely of the `candidates` nearest; see SOGMMIndex).
 
     means, normals: [N, 3] surfel centres and unit normals (torch). reduction "mean" (default,
-    keeps the weight independent of the surfel count) or "sum" (the paper's form). inlier: a
-    distance (m); a surfel farther than it from its component's plane lies on another surface than
-    that patch (a thin part's side, the far side of a crease) and both its terms are dropped (a
-    truncated, robust L_geo); None = every surfel counts. Returns a scalar.
+    keeps the weight independent of the surfel count) or "sum" (the paper's form). Returns a scalar.
     """
     import torch
 
@@ -586,10 +583,7 @@ def geo_loss(means, normals, index: SOGMMIndex, lambda_n: float = 0.1, reduction
     idx = index.nearest(means, candidates)
     ref_m = index.means.to(means.device, means.dtype)[idx]
     ref_n = index.normals.to(means.device, means.dtype)[idx]
-    dist = point_to_plane(means, ref_m, ref_n)
-    per = dist + lambda_n * normal_alignment(normals, ref_n)
-    if inlier is not None:
-        per = per * (dist.detach() <= inlier)
+    per = point_to_plane(means, ref_m, ref_n) + lambda_n * normal_alignment(normals, ref_n)
     if reduction == "sum":
         return per.sum()
     if reduction != "mean":

@@ -432,11 +432,6 @@ class PanopticField(nn.Module):
         self.last_drops = {"duplicate": int(dup.sum()), "fragment": int((fragment & ~dup).sum()),
                            "useless": int((useless & ~dup & ~fragment).sum()),
                            "empty": int((empty & ~dup & ~useless & ~fragment).sum())}
-        # per dropped query (index before the drop): the first rule that fired, for diagnosis
-        self._why = {}
-        for rule, hit in (("empty", empty), ("useless", useless), ("fragment", fragment), ("duplicate", dup)):
-            for j in torch.nonzero(hit).flatten().tolist():
-                self._why[j] = rule
         self.drop_log.append((self.steps, dict(self.last_drops)))
         if bool(drop.all()):                                                         # keep the best one
             drop[int(torch.argmax(self.matched))] = False

@@ -34,16 +34,10 @@ class TrainConfig:
                                 "lambda_n normal alignment (the prior's patches fit the noisy points to "
                                 "~1 cm; 1.0 held surfels on them and cost accuracy)")
     lambda_geo_normal: float = _f(0.1, "lambda_n: weight of 1 - |n_i . n_k| inside L_geo")
-    geo_candidates: int = _f(1, "L_geo's component of a surfel: 1 = nearest component mean; k > 1 = "
-                                "the most likely of the k nearest (near a crease the nearest mean can "
-                                "be the other face's patch)")
     geo_final: float = _f(0.0, "L_geo's weight at the last step, as a fraction of lambda_geo (linear "
                                "schedule; 1 = constant). 0: the prior guides early and the depth refines "
                                "last; on the demo scenes (seeds 0 / 1) Chamfer-L1 1.292 -> 1.282 and "
                                "3.679 -> 3.672 cm, F1 0.9650 -> 0.9653 and 0.9322 -> 0.9328")
-    geo_inlier: float = _f(0.0, "L_geo ignores a surfel farther than this many SOGMM residual budgets "
-                                "from its component's plane (it lies on another surface: a thin "
-                                "part's side, across a crease); 0 = every surfel counts")
     lambda_iso: float = _f(0.05, "lambda_5: L_iso = ((s1 - s2) / spacing)^2, anisotropy penalty "
                                  "(scales in units of the initial surfel spacing)")
     lambda_normal: float = _f(0.05, "2DGS normal consistency: rendered normal vs normal of the "

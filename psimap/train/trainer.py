@@ -284,20 +284,12 @@ def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: f
         sub = torch.randperm(n, generator=generator)[:geo_samples] if n > geo_samples else slice(None)
         R = quat_to_rotmat(params["quats"][sub])
         terms["geo"] = cfg.lambda_geo * geo_scale * geo_loss(params["means"][sub], R[:, :, 2], index,
-                                                 lambda_n=cfg.lambda_geo_normal,
-                                                 candidates=cfg.geo_candidates,
-                                                 inlier=_geo_inlier(cfg, index))
+                                                             lambda_n=cfg.lambda_geo_normal)
     if regularize and cfg.lambda_normal > 0:
         terms["normal"] = cfg.lambda_normal * L.normal_consistency(out.normal, out.alpha, out.depth, fr.K)
     if regularize and cfg.lambda_dist > 0:
         terms["distortion"] = cfg.lambda_dist * out.distortion.mean()
     return terms, out
-
-
-def _geo_inlier(cfg: TrainConfig, index) -> float | None:
-    """L_geo's inlier distance (m): cfg.geo_inlier SOGMM residual budgets, None when off."""
-    budget = float(index.sogmm.fit_stats.get("residual_budget", 0.0))
-    return cfg.geo_inlier * budget if cfg.geo_inlier > 0 and budget > 0 else None
 
 
 @torch.no_grad()
