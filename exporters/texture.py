@@ -88,19 +88,7 @@ def bake_from_views(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, vie
     acc = np.zeros((len(pos), 3))
     wsum = np.zeros(len(pos))
     for v in views:
-        w2c = np.linalg.inv(v.c2w)
-        pc = pos @ w2c[:3, :3].T + w2c[:3, 3]
-        z = pc[:, 2]
-        front = z > 1e-6
-        zs = np.where(front, z, 1.0)
-        x = v.K[0, 0] * pc[:, 0] / zs + v.K[0, 2]
-        y = v.K[1, 1] * pc[:, 1] / zs + v.K[1, 2]
-        H, W = v.depth.shape
-        xi, yi = np.round(x).astype(np.int64), np.round(y).astype(np.int64)
-        inb = front & (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
-        xi, yi = xi.clip(0, W - 1), yi.clip(0, H - 1)
-        d = v.depth[yi, xi]
-        vis = inb & (d > 0) & (np.abs(d - z) <= np.maximum(depth_tolerance, 0.02 * z))
+        xi, yi, z, vis = _depth_tested_pixels(pos, v, depth_tolerance)
         ray = pos - v.c2w[:3, 3]
         ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-20)
         cos = -(ray * nrm).sum(1)
@@ -150,23 +138,32 @@ def bake_from_mesh(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, sour
     return _to_uint8(_dilate(img, filled))
 
 
+def _depth_tested_pixels(points: np.ndarray, view: View, depth_tolerance: float):
+    """Nearest pixel of points [P, 3] in `view`: (x [P], y [P] int64 clipped to the image, z [P] camera
+    depth, seen [P] bool). Seen: in front, inside the image, and within max(depth_tolerance, 2 % of
+    depth) of the view's valid depth there (an occluded point fails)."""
+    w2c = np.linalg.inv(view.c2w)
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = pc[:, 2]
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    xi = np.round(view.K[0, 0] * pc[:, 0] / zs + view.K[0, 2]).astype(np.int64)
+    yi = np.round(view.K[1, 1] * pc[:, 1] / zs + view.K[1, 2]).astype(np.int64)
+    H, W = view.depth.shape
+    inb = front & (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
+    xi, yi = xi.clip(0, W - 1), yi.clip(0, H - 1)
+    d = view.depth[yi, xi]
+    seen = inb & (d > 0) & (np.abs(d - z) <= np.maximum(depth_tolerance, 0.02 * z))
+    return xi, yi, z, seen
+
+
 def vertex_colors_from_views(vertices: np.ndarray, views: list[View], depth_tolerance: float = 0.02,
                              default=(0.6, 0.6, 0.6)) -> np.ndarray:
     """[V, 3] float colours: mean of the views that see each vertex (depth test); default if none."""
     acc = np.zeros((len(vertices), 3))
     n = np.zeros(len(vertices))
     for v in views:
-        w2c = np.linalg.inv(v.c2w)
-        pc = vertices @ w2c[:3, :3].T + w2c[:3, 3]
-        z = pc[:, 2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        xi = np.round(v.K[0, 0] * pc[:, 0] / zs + v.K[0, 2]).astype(np.int64)
-        yi = np.round(v.K[1, 1] * pc[:, 1] / zs + v.K[1, 2]).astype(np.int64)
-        H, W = v.depth.shape
-        inb = (z > 1e-6) & (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
-        xi, yi = xi.clip(0, W - 1), yi.clip(0, H - 1)
-        d = v.depth[yi, xi]
-        ok = inb & (d > 0) & (np.abs(d - z) <= np.maximum(depth_tolerance, 0.02 * z))
+        xi, yi, _, ok = _depth_tested_pixels(vertices, v, depth_tolerance)
         acc[ok] += v.rgb[yi[ok], xi[ok], :3]
         n[ok] += 1
     out = np.tile(np.asarray(default, np.float64), (len(vertices), 1))

@@ -254,6 +254,26 @@ def test_bake_from_views_colours_seen_texels_only():
     assert cov2 == 0.0 and img2.max() == 0
 
 
+def test_vertex_colors_from_views_depth_tests_each_vertex():
+    K, c2w = _cam_looking_down()            # camera 1 m above the origin, looking down -z
+    h = w = 64
+    rgb = np.zeros((h, w, 3), np.float32)
+    rgb[..., 1] = 1.0
+    depth = np.full((h, w), 0.9, np.float32)   # a surface at z = 0.1 fills the view
+    verts = np.array([[0.0, 0.0, 0.1],        # on the seen surface: green
+                      [0.0, 0.0, -0.3],       # 40 cm behind it (occluded): default
+                      [0.0, 0.0, 1.5],        # behind the camera: default
+                      [5.0, 0.0, 0.1]])       # outside the image: default
+    out = T.vertex_colors_from_views(verts, [T.View(rgb, depth, K, c2w)], default=(0.5, 0.5, 0.5))
+    np.testing.assert_allclose(out[0], [0.0, 1.0, 0.0])
+    np.testing.assert_allclose(out[1:], 0.5)
+    # two views that both see the vertex: the mean colour
+    rgb2 = np.zeros_like(rgb)
+    rgb2[..., 0] = 1.0
+    out2 = T.vertex_colors_from_views(verts[:1], [T.View(rgb, depth, K, c2w), T.View(rgb2, depth, K, c2w)])
+    np.testing.assert_allclose(out2[0], [0.5, 0.5, 0.0])
+
+
 def test_texture_size_follows_area():
     small = trimesh.creation.box(extents=[0.05] * 3)
     big = trimesh.creation.box(extents=[0.5] * 3)
