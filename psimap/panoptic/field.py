@@ -146,7 +146,8 @@ def init_queries(frames, classes, cfg: PanopticConfig, scene_scale: float,
             if pts.shape[0] >= 3:
                 groups.append(pts)
     feat, mean, cov = init_from_points(groups, cfg.feat_dim, generator=generator)
-    return InstanceQueries(feat, mean, cov, temperature=cfg.temperature, scene_scale=scene_scale)
+    return InstanceQueries(feat, mean, cov, temperature=cfg.temperature, scene_scale=scene_scale,
+                           generator=generator)
 
 
 class PanopticField(nn.Module):

@@ -32,7 +32,7 @@ class InstanceQueries(nn.Module):
 
     def __init__(self, feature: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, *,
                  temperature: float = 0.1, n_freqs: int = 4, scene_scale: float = 1.0,
-                 attn_dim: int | None = None):
+                 attn_dim: int | None = None, generator: torch.Generator | None = None):
         super().__init__()
         q, f = feature.shape
         self.feature = nn.Parameter(feature.clone().float())
@@ -46,14 +46,21 @@ class InstanceQueries(nn.Module):
         self.n_freqs = n_freqs
         d = attn_dim or f
         # Frustum cross-attention projections (keys carry position through psi, values do not).
-        self.pos_proj = nn.Linear(6 * n_freqs, f, bias=False)
-        self.w_q = nn.Linear(f, d, bias=False)
-        self.w_k = nn.Linear(f, d, bias=False)
-        self.w_v = nn.Linear(f, f, bias=False)
-        for lin in (self.w_q, self.w_k, self.w_v):
-            if lin.weight.shape[0] == lin.weight.shape[1]:
-                nn.init.eye_(lin.weight)   # identity start: attention initially compares raw features
-        nn.init.normal_(self.pos_proj.weight, std=0.02)
+        # Initialised from `generator`, never from torch's global RNG: the global stream's state
+        # depends on whatever ran before in the process, so the same seed gave different fits
+        # (seed 1 at 15 % noise: PQ 0.861 after the 0 % run, 0.872 alone).
+        self.pos_proj = nn.utils.skip_init(nn.Linear, 6 * n_freqs, f, bias=False)
+        self.w_q = nn.utils.skip_init(nn.Linear, f, d, bias=False)
+        self.w_k = nn.utils.skip_init(nn.Linear, f, d, bias=False)
+        self.w_v = nn.utils.skip_init(nn.Linear, f, f, bias=False)
+        with torch.no_grad():
+            for lin in (self.w_q, self.w_k, self.w_v):
+                out_f, in_f = lin.weight.shape
+                if out_f == in_f:
+                    lin.weight.copy_(torch.eye(in_f))  # identity start: attention compares raw features
+                else:
+                    lin.weight.copy_(torch.randn(out_f, in_f, generator=generator) / math.sqrt(in_f))
+            self.pos_proj.weight.copy_(0.02 * torch.randn(self.pos_proj.weight.shape, generator=generator))
         # The attention update enters as a gated residual: start at 0 so early training is stable.
         self.gate = nn.Parameter(torch.zeros(()))
 
