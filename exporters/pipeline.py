@@ -73,7 +73,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
             raise PsimapError("export_scene: expected a Scene or a list of SceneObject")
     else:
         all_objs, background = extract_scene(scene_or_objects, completion=completion, progress=progress,
-                                             seed=seed, timings=scene_steps, **kw)
+                                             seed=seed, timings=scene_steps, static_classes=static_classes,
+                                             **kw)
     t_objects = time.perf_counter() - t0
     objs = [o for o in all_objs if not o.skipped and not o.static]
     mark_fixed(objs, static_classes, min_rigid_surfels)

@@ -185,3 +185,23 @@ def test_cli_export_and_bad_checkpoints(ckpt, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 1 and "density table" in err
     assert not any((tmp_path / d).exists() for d in ("o2", "o3", "o4"))
+
+
+def test_static_classes_get_the_larger_hull_cap(ckpt, monkeypatch):
+    """Static furniture's colliders may use STATIC_MAX_HULLS parts; other objects keep the default."""
+    import psimap
+    from psimap.exporters import objects as O
+
+    seen = {}
+    real = O.finish_object
+
+    def spy(o, **kw):
+        seen[o.label] = kw.get("max_hulls", 8)
+        return real(o, **kw)
+
+    monkeypatch.setattr(O, "finish_object", spy)
+    scene = psimap.load(ckpt)
+    O.extract_scene(scene, completion="none")
+    assert seen == {"box": 8}
+    O.extract_scene(scene, completion="none", static_classes=frozenset({"box"}))
+    assert seen == {"box": O.STATIC_MAX_HULLS} and O.STATIC_MAX_HULLS > 8
