@@ -438,3 +438,30 @@ def test_batched_raycasting_gives_the_same_frames(tmp_path, monkeypatch):
     da, db = _digest(tmp_path / "one"), _digest(tmp_path / "three")
     same = [k for k in da if k.startswith(("images", "depth", "gt/"))]
     assert len(same) > 20 and all(da[k] == db[k] for k in same)
+
+
+def test_degraded_depth_sensor(tmp_path):
+    """DepthNoise.degraded: x1 is the default sensor (same frames bit for bit); x3 triples the depth
+    error; a dropout rate thins the valid pixels to about 1 - rate."""
+    from psimap.data import load
+
+    assert N.DepthNoise.degraded(1.0) == N.DepthNoise()
+    with pytest.raises(ValueError):
+        N.DepthNoise.degraded(-1.0)
+    with pytest.raises(ValueError):
+        N.DepthNoise.degraded(1.0, 1.0)
+    kw = dict(seed=3, label_noise=0.0, **TINY)
+    errs, valid = {}, {}
+    for name, model in (("default", True), ("x1", N.DepthNoise.degraded(1.0)), ("x3", N.DepthNoise.degraded(3.0)),
+                        ("sparse", N.DepthNoise.degraded(1.0, 0.75)), ("true", False)):
+        G.generate(tmp_path / name, **kw, depth_noise=model)
+        seq = load(tmp_path / name)
+        errs[name] = np.stack([seq[i].depth for i in range(len(seq))])
+    truth = errs.pop("true")
+    assert np.array_equal(errs["default"], errs["x1"])
+    for name, d in errs.items():
+        ok = (d > 0) & (truth > 0)
+        valid[name] = ok.mean() / (truth > 0).mean()
+        errs[name] = np.median(np.abs(d[ok] - truth[ok]))
+    assert 2.3 < errs["x3"] / errs["x1"] < 3.5
+    assert 0.18 < valid["sparse"] < 0.3 and valid["x1"] > 0.9

@@ -500,10 +500,11 @@ def lidar_sweep(scene, mesh: SceneMesh, mats: Materials, origin: np.ndarray, rng
 
 
 def render(scene, mesh: SceneMesh, mats: Materials, lights: np.ndarray, K: np.ndarray, c2ws: np.ndarray,
-           width: int, height: int, noise_rng: np.random.Generator | None) -> dict:
+           width: int, height: int, noise_rng: np.random.Generator | None,
+           depth_model: N.DepthNoise | None = None) -> dict:
     """Ray cast frames c2ws [B, 4, 4]. Returns [B, H, W(, 3)] arrays: rgb (float32, [0, 1]), depth (true
     z-depth, 0 = no surface), sensor_depth (with the sensor model when `noise_rng` is given, else the
-    true depth), gt_instance / gt_semantic (uint16)."""
+    true depth; `depth_model` None = the default DepthNoise), gt_instance / gt_semantic (uint16)."""
     rays = camera_rays(K, c2ws, width, height)
     t, prim, normals = cast(scene, rays)
     hit = prim >= 0
@@ -517,7 +518,7 @@ def render(scene, mesh: SceneMesh, mats: Materials, lights: np.ndarray, K: np.nd
     if noise_rng is not None:
         cos_inc = np.zeros(t.shape, np.float32)
         cos_inc[hit] = np.abs((n_hit * d_hit).sum(-1)) / np.linalg.norm(d_hit, axis=-1)
-        sensor_depth = N.noisy_depth(depth, cos_inc, noise_rng)
+        sensor_depth = N.noisy_depth(depth, cos_inc, noise_rng, depth_model)
         rgb = np.clip(rgb + noise_rng.normal(0.0, 0.008, rgb.shape).astype(np.float32), 0, 1)
     return {"rgb": rgb, "depth": depth, "sensor_depth": sensor_depth, "gt_instance": gt_inst,
             "gt_semantic": gt_sem}
@@ -526,12 +527,13 @@ def render(scene, mesh: SceneMesh, mats: Materials, lights: np.ndarray, K: np.nd
 # ---------------------------------------------------------------------------------------- generate
 def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, height: int = 120,
              n_objects: int | None = None, label_noise: float = 0.15, lidar: bool = False,
-             pose_noise: float = 0.0, depth_noise: bool = True, ceiling: bool | None = None,
+             pose_noise: float = 0.0, depth_noise: bool | N.DepthNoise = True, ceiling: bool | None = None,
              labels: N.LabelNoise | None = None, lidar_every: int = 10, progress: bool | None = None) -> dict:
     """Write a synthetic scene with exact ground truth to `out_dir` (scene format of DESIGN.md).
 
     label_noise: one knob for the pseudo-label errors (`LabelNoise.from_rate`); `labels` overrides
-    it with explicit rates. depth_noise: sensor noise and invalid pixels on the written depth.
+    it with explicit rates. depth_noise: sensor noise and invalid pixels on the written depth (True:
+    the default sensor model; a DepthNoise: that model, e.g. `DepthNoise.degraded(3.0)`; False: none).
     pose_noise: std (m / rad) of the error on the written poses (ground truth renders use the true
     ones). lidar: a sweep every `lidar_every` frames from the camera position. Returns a summary dict.
     """
@@ -583,7 +585,8 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
         idx = range(start, min(frames, start + batch))
         tb = time.perf_counter()
         r = render(scene, mesh, mats, lights, K, c2ws[idx.start:idx.stop], width, height,
-                   r_depth if depth_noise else None)
+                   r_depth if depth_noise else None,
+                   depth_noise if isinstance(depth_noise, N.DepthNoise) else None)
         n_surface += int((r["depth"] > 0).sum())
         n_valid += int((r["sensor_depth"] > 0).sum())
         timings["render"] = timings.get("render", 0.0) + time.perf_counter() - tb

@@ -27,6 +27,19 @@ class DepthNoise:
     edge_dropout: float = 0.4
     dropout: float = 0.005
 
+    @classmethod
+    def degraded(cls, noise: float = 1.0, dropout: float | None = None) -> "DepthNoise":
+        """The default sensor with its noise std scaled by `noise` (both terms) and, when given, the
+        random per-pixel dropout rate replaced by `dropout` (a sparser sensor). Benchmarks use it
+        for a depth-quality axis; degraded(1.0) equals DepthNoise()."""
+        if not (noise >= 0 and np.isfinite(noise)):
+            raise ValueError(f"depth noise factor must be a finite value >= 0, got {noise}")
+        base = cls()
+        if dropout is not None and not 0.0 <= dropout < 1.0:
+            raise ValueError(f"depth dropout must lie in [0, 1), got {dropout}")
+        return cls(sigma0=base.sigma0 * noise, sigma_quad=base.sigma_quad * noise,
+                   dropout=base.dropout if dropout is None else float(dropout))
+
 
 def depth_sigma(z: np.ndarray, p: DepthNoise) -> np.ndarray:
     """Noise std [same shape as z] in metres for true depths `z`."""
