@@ -25,6 +25,7 @@ def cli_export(opts) -> int:
                                                 getattr(opts, "dynamic_all", False))
     if getattr(opts, "dynamic_all", False):
         kw["min_rigid_surfels"] = 0
+    kw["pin_unstable"] = not (getattr(opts, "no_pin_unstable", False) or getattr(opts, "dynamic_all", False))
     scene = psimap.load(opts.ckpt)
     report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
                           check=not opts.no_check, progress=sys.stderr.isatty(), **kw)
@@ -43,6 +44,8 @@ def cli_export(opts) -> int:
         print(f"simulation check {status} (min contact dist {chk['min_contact_dist'] * 1000:.2f} mm, "
               f"max drift {chk['max_drift'] * 100:.2f} cm, "
               f"{report['timings'].get('sim_seconds_per_wall_second', 0):.1f} sim s / wall s)")
+        for name, reason in chk.get("pinned", {}).items():
+            print(f"  {name} exported static: {reason}")
         if not chk["passed"]:
             return 2
     return 0

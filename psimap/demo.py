@@ -142,7 +142,8 @@ def stage_export(state: DemoState) -> str:
         state.failed = "simulation check failed"
     return (f"{len(objs)} objects -> {state.out / 'export'} (scene.xml, scene.usda, scene.glb, report.json); "
             f"simulation check {verdict} (min contact dist {check.get('min_contact_dist', 0.0) * 1000:.2f} mm, "
-            f"max drift {check.get('max_drift', 0.0) * 100:.2f} cm, {len(check.get('nudges', {}))} nudged)")
+            f"max drift {check.get('max_drift', 0.0) * 100:.2f} cm, {len(check.get('nudges', {}))} nudged"
+            + (f", pinned static as unstable: {', '.join(check['pinned'])}" if check.get("pinned") else "") + ")")
 
 
 STAGES: list[tuple[str, Callable[[DemoState], str]]] = [

@@ -84,6 +84,8 @@ class ExportOptions:
                                   "default: heavy furniture (table, cabinet, shelf, ...); 'none' = all dynamic")
     dynamic_all: bool = opt(False, "export every object as a dynamic rigid body (no static furniture, "
                                     "barely seen objects too)")
+    no_pin_unstable: bool = opt(False, "keep objects that do not rest stably in the settle check dynamic "
+                                       "(the check then fails) instead of exporting them static")
 
 
 @dataclass

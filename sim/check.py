@@ -254,7 +254,8 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     (m), nudges {body: signed m along +z: up out of a penetration, down onto a support up to max_gap
     below}, drift {body: m} for resting bodies,
     max_drift, unsupported (bodies not in contact at t=0), fell {body: m dropped} (unsupported
-    bodies that fell more than max_drift: a failure), nan, exploded, sim_seconds_per_wall_second,
+    bodies that fell more than max_drift: a failure), unstable (names of the bodies that moved more
+    than max_drift or fell), nan, exploded, sim_seconds_per_wall_second,
     passed, failures [str].
     """
     import mujoco
@@ -319,11 +320,14 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         "static_bodies": static_bodies,
         "duration_s": float(steps * model.opt.timestep),
         "min_contact_dist": float(min_dist),
+        "penetrating": bool(min_dist < -max_penetration),
         "nudges": nudges,
         "drift": dict(sorted(drift.items())),
         "max_drift": float(max(drift.values())) if drift else 0.0,
         "unsupported": sorted(n for n, r in zip(names, resting) if not r),
         "fell": dict(sorted(fell.items())),
+        # bodies that did not stay where they were: resting ones that moved, unsupported ones that fell
+        "unstable": sorted(set(moved) | set(fell)),
         "nan": bool(nan),
         "exploded": bool(exploded),
         "sim_seconds_per_wall_second": float(steps * model.opt.timestep / max(wall, 1e-9)),

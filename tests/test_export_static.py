@@ -112,6 +112,10 @@ def test_cli_static_flags_reach_export(monkeypatch, tmp_path, args, expect):
     assert main(["export", str(tmp_path / "x.ckpt"), "--out", str(tmp_path / "o"), *args]) == 0
     assert set(seen["static_classes"]) == (set(STATIC_CLASSES) if expect == "default" else expect)
     assert seen.get("min_rigid_surfels", 30) == (0 if "--dynamic-all" in args else 30)
+    assert seen["pin_unstable"] is ("--dynamic-all" not in args)     # everything dynamic: nothing pinned
+    seen.clear()
+    assert main(["export", str(tmp_path / "x.ckpt"), "--out", str(tmp_path / "o"), "--no-pin-unstable"]) == 0
+    assert seen["pin_unstable"] is False
 
 
 def test_barely_seen_object_is_static_with_reason(tmp_path):
@@ -131,3 +135,41 @@ def test_barely_seen_object_is_static_with_reason(tmp_path):
     objs[1].surfel_count = 3
     r = export_scene(objs, tmp_path / "v", "mjcf", check=False, min_rigid_surfels=0)
     assert not {o["name"]: o for o in r["objects"]}["box_2"]["static"]
+
+
+def _box_on_ramp(angle_deg=35.0):
+    """A static ramp ("table": static class) and a box resting flush on its slope, steeper than
+    the friction cone (tan 35 deg = 0.70 > 0.5): the box slides off in the settle check."""
+    import numpy as np
+
+    from psimap.exporters.objects import build_object
+
+    a = np.radians(angle_deg)
+    h = 0.6 * np.tan(a)
+    # a wedge: its slope rises from z = 0 at x = -0.3 to h at x = 0.3
+    ramp = trimesh.convex.convex_hull(np.array([[x, y, 0.0] for x in (-0.3, 0.3) for y in (-0.2, 0.2)]
+                                               + [[0.3, y, h] for y in (-0.2, 0.2)]))
+    n = np.array([-np.sin(a), 0.0, np.cos(a)])
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1],
+                               transform=trimesh.transformations.rotation_matrix(-a, [0, 1, 0]))
+    box.apply_translation(np.array([0.0, 0.0, 0.3 * np.tan(a)]) + n * 0.0505)
+    return [build_object(m, lab, i + 1, completion="none") for i, (m, lab) in enumerate([(ramp, "table"),
+                                                                                         (box, "box")])]
+
+
+def test_unstable_object_is_pinned_static_and_the_check_passes(tmp_path):
+    from psimap.exporters.pipeline import export_scene
+
+    objs = _box_on_ramp()
+    r = export_scene(objs, tmp_path / "free", "mjcf", pin_unstable=False)
+    c = r["check"]
+    assert not c["passed"] and c["unstable"] == ["box_2"] and c["drift"]["box_2"] > 0.05
+    assert c["pinned"] == {} and not c["penetrating"]
+    r = export_scene(objs, tmp_path / "pin", ["mjcf", "usd"])
+    c = r["check"]
+    assert c["passed"], c["failures"]
+    assert list(c["pinned"]) == ["box_2"] and "unstable in the settle check" in c["pinned"]["box_2"]
+    e = {o["name"]: o for o in r["objects"]}
+    assert e["box_2"]["static"] and e["box_2"]["static_reason"] == c["pinned"]["box_2"]
+    assert _bodies(tmp_path / "pin" / "scene.xml")["box_2"].find("freejoint") is None
+    assert c["bodies"] == 0 and sorted(c["static_bodies"]) == ["box_2", "table_1"]
