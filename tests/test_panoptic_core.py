@@ -400,3 +400,109 @@ def test_instance_class_comes_from_the_masks_its_query_matched(query_class, mug_
     assert mug > 0 and lab["instance_class"][mug] == mug_class
     assert int(lab["semantic_id"][1]) == mug_class
     assert lab["instance_class"][int(lab["instance_id"][0])] == 1
+
+
+@pytest.mark.parametrize("trim", [True, False])
+def test_query_gaussian_ignores_mask_pixels_that_bleed_onto_the_wall_behind(trim):
+    from psimap.data.frames import ClassInfo, Frame
+    from psimap.panoptic.field import PanopticConfig, backproject, init_queries
+
+    # a 6x6 px box 1.5 m away in front of a wall at 3 m; the noisy 2D mask is the box dilated by
+    # 1 px, so 28 of its 64 pixels see the wall
+    h, w = 30, 40
+    K = np.array([[30.0, 0, 20], [0, 30.0, 15], [0, 0, 1]])
+    depth = np.full((h, w), 3.0, np.float32)
+    depth[12:18, 17:23] = 1.5
+    inst = np.zeros((h, w), np.uint16)
+    inst[11:19, 16:24] = 4
+    fr = Frame(rgb=np.zeros((h, w, 3), np.float32), depth=depth, K=K, c2w=np.eye(4),
+               semantic=np.where(inst > 0, 2, 0).astype(np.uint16), instance=inst, name="f0")
+    pts = backproject(torch.as_tensor(depth), torch.as_tensor(K), torch.eye(4, dtype=torch.float64),
+                      torch.as_tensor(inst > 0), trim=trim)
+    if not trim:                      # without trimming the wall pixels drag the Gaussian 0.6 m back
+        assert pts.shape[0] == 64 and float(pts[:, 2].mean()) > 2.0
+        return
+    assert pts.shape[0] == 36 and torch.allclose(pts[:, 2], torch.tensor(1.5))
+    q = init_queries([fr], [ClassInfo(2, "box", True)], PanopticConfig(init_frames=1), scene_scale=4.0)
+    assert q.count == 1
+    assert abs(float(q.mean[0, 2]) - 1.5) < 0.01
+    sigma = torch.linalg.eigvalsh(q.cov()[0].double()).sqrt()
+    # the box is 0.3 m wide: its own spread only (std 0.087 m, inflated x sqrt 2 to cover unseen sides)
+    assert float(sigma.max()) < 0.15, sigma
+
+
+def test_front_layer_keeps_a_slanted_surface_and_drops_the_background():
+    from psimap.panoptic.field import front_layer
+
+    z = torch.cat([torch.linspace(1.4, 3.7, 200, dtype=torch.float64),   # a table seen obliquely
+                   torch.full((20,), 6.0, dtype=torch.float64)])         # bleed onto the far wall
+    keep = front_layer(z)
+    assert bool(keep[:200].all()) and not bool(keep[200:].any())
+    assert bool(front_layer(torch.full((5,), 2.0, dtype=torch.float64)).all())
+
+
+def test_small_mask_is_matched_to_the_query_that_draws_it_despite_diffuse_tails():
+    from psimap.panoptic.matching import mask_windows
+
+    # a 160x120 frame: a shelf mask (rows 40-99) and a 2x3 px bottle mask in front of it. Query 0
+    # draws the shelf, query 1 the bottle (0.6 on its pixels); every query also keeps the softmax's
+    # diffuse tail of 0.03 on every pixel (~580 summed over the frame)
+    h, w = 120, 160
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[40:100, 20:140] = 1
+    inst[60:62, 70:73] = 2
+    masks, _ = masks_from_ids(inst)
+    target = masks.flatten(1).float()
+    prob = torch.full((3, h * w), 0.03)
+    prob[0, target[0] > 0] = 0.6
+    prob[0, target[1] > 0] = 0.3          # the shelf's query holds part of the bottle too
+    prob[1, target[1] > 0] = 0.6
+    window = mask_windows(masks).flatten(1).float()
+    assert int(window[1].sum()) == (2 * 3) * (3 * 3)          # 3x the box per axis
+    whole = hungarian_match(prob, target)
+    assert dict(zip(whole.query_idx.tolist(), whole.mask_idx.tolist())) == {0: 0}   # bottle rejected
+    local = hungarian_match(prob, target, window=window)
+    assert dict(zip(local.query_idx.tolist(), local.mask_idx.tolist())) == {0: 0, 1: 1}
+    # without its own query, neither the shelf's query (as strong around the bottle as on it) nor
+    # a query with only the tail may take the bottle's mask
+    alone = hungarian_match(prob[[2, 0]], target[[1]], window=window[[1]])
+    assert alone.query_idx.numel() == 0
+    # the windowed loss of the matched bottle is far from saturated: it can teach the query
+    p = prob.clone().requires_grad_(True)
+    loss = matched_mask_loss(p, target, local, window=window)
+    loss.backward()
+    assert float(p.grad[1, target[1] > 0].mean()) < -0.05
+
+
+@pytest.mark.parametrize("split, piece_class, spawned", [(True, 1, 0), (True, 2, 1), (False, 1, 1)])
+def test_second_piece_of_a_split_mask_spawns_no_query(split, piece_class, spawned):
+    from types import SimpleNamespace
+
+    from psimap.data.frames import ClassInfo
+    from psimap.panoptic.field import PanopticConfig, PanopticField
+
+    # one query draws a box; the 2D model split the box's mask in two (ids 5 and 6). The second
+    # piece is the same object (no new query) unless its class differs (a bottle on the box)
+    h, w = 16, 20
+    K = torch.tensor([[10.0, 0, 10], [0, 10.0, 8], [0, 0, 1]])
+    feat, mean, cov = init_from_points([torch.randn(30, 3) * 0.05 + torch.tensor([0.0, 0.0, 1.0])], 4)
+    classes = [ClassInfo(1, "box", True), ClassInfo(2, "bottle", True)]
+    field = PanopticField(5, classes, InstanceQueries(feat, mean, cov),
+                          PanopticConfig(feat_dim=4, spawn_split=split))
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[4:12, 3:11] = 5
+    inst[5:8, 12:15] = 6
+    sem = torch.where(inst == 5, 1, torch.where(inst == 6, piece_class, 0))
+    drawn = (inst > 0).float()
+
+    def render(idx, feats, topk):
+        img = torch.zeros(h, w, feats.shape[1])
+        img[..., 0] = 0.9 * drawn
+        return SimpleNamespace(features=feats.sum() * 0 + img, alpha=torch.ones(h, w))
+
+    args = (render, torch.zeros(5, 3), torch.arange(5), inst, sem, K, torch.eye(4), w, h)
+    l_ins, l_sem, info = field.losses(*args, depth=torch.ones(h, w))
+    assert info["masks"] == 2 and info["matched"] == 1
+    (l_ins + l_sem).backward()
+    field.step()
+    assert field.queries.count == 1 + spawned

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from psimap import PsimapError
 from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, useless_queries
-from psimap.panoptic.matching import hungarian_match, masks_from_ids, matched_mask_loss
+from psimap.panoptic.matching import hungarian_match, mask_windows, masks_from_ids, matched_mask_loss
 from psimap.panoptic.queries import InstanceQueries, init_from_points
 
 
@@ -68,6 +68,7 @@ class PanopticConfig:
     query_class: bool = True
     spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
     spawn_feature: bool = True      # a spawned query starts from its mask's surfels' features
+    spawn_split: bool = True        # no spawn for a mask drawn mostly by a query busy with a same-class mask
     max_spawn_per_step: int = 2
     max_queries: int = 256
 
@@ -112,14 +113,35 @@ def thing_masks(instance: torch.Tensor, semantic: torch.Tensor | None, ids: torc
     return masks[keep], major[keep]
 
 
-def backproject(depth: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """World points [P, 3] of the mask's pixels with valid depth (pixel centres at integers)."""
+def backproject(depth: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, mask: torch.Tensor,
+                trim: bool = True) -> torch.Tensor:
+    """World points [P, 3] of the mask's pixels with valid depth (pixel centres at integers).
+
+    trim: keep only the mask's main depth layer (`front_layer`). Noisy 2D masks bleed past an
+    object's outline onto the surface behind it (or in front): at 15 % noise a 31 px bottle mask
+    held pixels 1.1 m behind the bottle, and the query Gaussian fitted to them spanned 0.4 m
+    (std) instead of 3 cm, so the query drew on everything around the bottle and was never matched.
+    """
     ys, xs = torch.nonzero(mask & (depth > 0), as_tuple=True)
     z = depth[ys, xs].double()
+    if trim and z.numel() >= 3:
+        keep = front_layer(z)
+        ys, xs, z = ys[keep], xs[keep], z[keep]
     x = (xs.double() - K[0, 2]) / K[0, 0] * z
     y = (ys.double() - K[1, 2]) / K[1, 1] * z
     pc = torch.stack([x, y, z], -1)
     return (pc @ c2w[:3, :3].T.double() + c2w[:3, 3].double()).float()
+
+
+def front_layer(z: torch.Tensor, k: float = 3.0, floor: float = 0.02) -> torch.Tensor:
+    """Mask [P] bool of the depths z [P] (metres) within k robust sigmas (1.4826 MAD) of their median.
+
+    The median lies on the surface that most of a mask's pixels see; `floor` (m) keeps flat views
+    of thin objects (MAD 0) from cutting their own depth noise.
+    """
+    med = z.median()
+    mad = (z - med).abs().median()
+    return (z - med).abs() <= k * 1.4826 * mad + floor
 
 
 def init_queries(frames, classes, cfg: PanopticConfig, scene_scale: float,
@@ -224,15 +246,18 @@ class PanopticField(nn.Module):
 
     def _queue_uncovered(self, masks: torch.Tensor, match, prob: torch.Tensor, depth: torch.Tensor,
                          K: torch.Tensor, w2c: torch.Tensor, surfel_pos: torch.Tensor | None = None,
-                         surfel_feat: torch.Tensor | None = None) -> None:
+                         surfel_feat: torch.Tensor | None = None,
+                         mask_cls: torch.Tensor | None = None) -> None:
         """Queue back-projected points of unmatched masks that no free query explains.
 
-        masks [M, H, W] bool; prob [H*W, Q] the queries' rendered probabilities (detached). A query
-        matched to another mask in this frame is busy with that object, so only the free (unmatched)
-        queries can cover a mask: by rendering it (mean probability > 0.5 over its pixels) or by
-        holding its 3D centre within 3 sigma. Checking every query instead blocked objects resting
-        on a large one (bottles on a table lie inside the table query's Gaussian) from ever getting
-        a query of their own.
+        masks [M, H, W] bool; prob [H*W, Q] the queries' rendered probabilities (detached);
+        mask_cls [M] class columns (-1 unknown). A query matched to another mask in this frame is
+        busy with that object, so only the free (unmatched) queries can cover a mask: by rendering
+        it (mean probability > 0.5 over its pixels) or by holding its 3D centre within 3 sigma.
+        Checking every query instead blocked objects resting on a large one (bottles on a table lie
+        inside the table query's Gaussian) from ever getting a query of their own. One exception
+        (`spawn_split`): when the query drawing most of the mask is busy with a mask of the same
+        class, the mask is the second piece of a split object, not a new one.
         """
         taken = set(match.mask_idx.tolist())
         unmatched = [m for m in range(masks.shape[0]) if m not in taken]
@@ -240,14 +265,21 @@ class PanopticField(nn.Module):
             return
         free = torch.ones(self.queries.count, dtype=torch.bool)
         free[match.query_idx] = False
+        busy_mask = torch.full((self.queries.count,), -1, dtype=torch.long)
+        busy_mask[match.query_idx] = match.mask_idx
         c2w = torch.linalg.inv(w2c.double())
         queued = 0
         for m in unmatched:
             if queued >= self.cfg.max_spawn_per_step:
                 break
             pix = masks[m].reshape(-1)
-            if bool(free.any()) and float(prob[pix][:, free].mean(0).max()) > 0.5:
+            drawn = prob[pix].mean(0)                                             # [Q]
+            if bool(free.any()) and float(drawn[free].max()) > 0.5:
                 continue
+            if self.cfg.spawn_split and mask_cls is not None and int(mask_cls[m]) >= 0:
+                top = int(drawn.argmax())
+                if not bool(free[top]) and int(mask_cls[busy_mask[top]]) == int(mask_cls[m]):
+                    continue
             pts = backproject(depth, K, c2w, masks[m])
             if pts.shape[0] < 3:
                 continue
@@ -341,10 +373,12 @@ class PanopticField(nn.Module):
                 self.visible += seen.float()
             if masks.shape[0]:
                 target = masks.reshape(masks.shape[0], -1)[:, pix].float()        # [M, P]
+                window = mask_windows(masks).reshape(masks.shape[0], -1)[:, pix].float()
                 prob = img[pix, :q].T.clamp(0.0, 1.0)                             # [Q, P]
                 match = hungarian_match(prob, target, reject_dice=cfg.reject_dice, w_class=cfg.w_class,
-                                        class_cost=self._class_cost(prob, img[pix][:, q:], alpha[pix], mask_cls))
-                l_ins = matched_mask_loss(prob, target, match)
+                                        class_cost=self._class_cost(prob, img[pix][:, q:], alpha[pix], mask_cls),
+                                        window=window)
+                l_ins = matched_mask_loss(prob, target, match, window=window)
                 self.matched[match.query_idx] += 1
                 mq = match.query_idx
                 self.comatched[mq[:, None], mq[None, :]] += 1.0
@@ -365,7 +399,7 @@ class PanopticField(nn.Module):
                     self.apart += (both & ~eq).float()
                 if cfg.spawn and depth is not None:
                     self._queue_uncovered(masks, match, img[:, :q].detach(), depth, K, w2c, pos,
-                                          f_vis.detach())
+                                          f_vis.detach(), mask_cls)
                 info["matched"] = int(match.query_idx.numel())
         # Semantic: cross-entropy of alpha-normalised blended logits on labelled, covered pixels.
         l_sem = zero
