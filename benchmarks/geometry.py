@@ -70,7 +70,9 @@ def mean_table(rows) -> tuple[str, dict]:
             means[(scene, method)][c] = float(v.mean())
             prec = 4 if c == "F1@5cm" else (0 if c in ("surfels",) else 3 if "(cm)" in c else 1)
             cells.append(f"{v.mean():.{prec}f} ± {v.std(ddof=1) if v.size > 1 else 0.0:.{prec}f}")
-        out.append([scene, len(rs), method] + cells)
+        # seeds whose method gave no mesh are left out of its mean: say how many remain
+        n_mesh = sum(r["F1@5cm"] is not None for r in rs)
+        out.append([scene, len(rs) if n_mesh == len(rs) else f"{len(rs)} ({n_mesh} with a mesh)", method] + cells)
     return markdown_table(["scene", "seeds", "method", *METRIC_COLS], out), means
 
 
@@ -131,7 +133,7 @@ def depth_tag(noise: float, dropout: float | None) -> str:
 
 
 def run_size(label, frames, width, height, iters, seed, samples, curves: bool, rows, curve_data,
-             depth_noise: float = 1.0, depth_dropout: float | None = None):
+             depth_noise: float = 1.0, depth_dropout: float | None = None, methods=(RAW, PSIMAP, NO_PRIOR)):
     import torch
 
     from psimap.data.synthetic import generate
@@ -149,12 +151,15 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
     generate(data, seed, frames=frames, width=width, height=height, depth_noise=sensor, progress=False)
     print(f"[{label}] generated {data} in {time.perf_counter() - t:.1f} s", flush=True)
 
-    mesh, secs, cpu = raw_tsdf(data)
-    m = _geo(mesh, data, samples)
-    rows.append(_row(label, seed, RAW, m, secs, cpu, None))
-    print(rows[-1], flush=True)
+    if RAW in methods:
+        mesh, secs, cpu = raw_tsdf(data)
+        m = _geo(mesh, data, samples)
+        rows.append(_row(label, seed, RAW, m, secs, cpu, None))
+        print(rows[-1], flush=True)
 
     for name, prior in ((PSIMAP, True), (NO_PRIOR, False)):
+        if name not in methods:
+            continue
         snaps = {}
         marks = set(np.unique(np.linspace(iters / 5, iters, 5).round().astype(int)).tolist()) if (
             curves and prior) else set()
@@ -289,6 +294,9 @@ def main(argv=None):
     ap.add_argument("--depth-dropout", type=float, default=None,
                     help="random per-pixel depth dropout rate (default: the sensor's 0.005); e.g. 0.75 "
                          "keeps a quarter of the pixels")
+    ap.add_argument("--methods", default="raw,psimap,noprior",
+                    help="comma list of raw, psimap, noprior: which methods to run (a baseline whose "
+                         "code did not change need not be re-run)")
     ap.add_argument("--samples", type=int, default=100_000, help="max points sampled per mesh")
     ap.add_argument("--chess-frames", type=int, default=60)
     ap.add_argument("--no-chess", action="store_true")
@@ -316,6 +324,11 @@ def main(argv=None):
             append_results("Geometry: default demo-size training time", table, note)
         return
     seeds = args.seeds if args.seeds else [args.seed]
+    names = {"raw": RAW, "psimap": PSIMAP, "noprior": NO_PRIOR}
+    try:
+        methods = tuple(names[m.strip()] for m in args.methods.split(",") if m.strip())
+    except KeyError as e:
+        ap.error(f"unknown method {e}; use raw, psimap, noprior")
     rows, curves = [], {}
     load_start = os.getloadavg()
     for k, s in enumerate([] if sizes == "none" else sizes.split(",")):
@@ -324,7 +337,7 @@ def main(argv=None):
         for j, seed in enumerate(seeds):
             run_size(f"{f} frames {w}x{h}" + (f", {quality}" if quality else ""), f, w, h, iters, seed,
                      args.samples, k == 0 and j == 0 and not args.no_curves, rows, curves,
-                     args.depth_noise, args.depth_dropout)
+                     args.depth_noise, args.depth_dropout, methods)
     plot_curves(curves)
     table = per_seed_table(rows)
     mtable, means = mean_table(rows) if len(seeds) > 1 else ("", {})

@@ -401,3 +401,48 @@ def test_7scenes_prior_explains_held_out_frame():
     lab = g.assign(q)
     d = np.abs(((q[:, :3] - g.means[lab, :3]) * g.normals[lab]).sum(1))
     assert np.median(d) < 0.012
+
+
+def test_noise_aware_fit_keeps_noisy_planes_whole_and_still_splits_bends():
+    """Per-point depth noise: a plane whose residual the noise explains stops splitting (fewer,
+    larger patches, closer to the true plane than the noise-blind fit); a bend of the surface
+    larger than the noise still splits; points at the noise level of 0 behave as without."""
+    rng = np.random.default_rng(3)
+    n, sigma = 20000, 0.02
+    xy = rng.uniform(-1.0, 1.0, (n, 2))
+    pts = np.c_[xy, rng.normal(0.0, sigma, n)]                 # 2 x 2 m plane, 2 cm noise
+    blind = fit_sogmm(pts, voxel=0.0, max_extent=1.0, residual=0.005)
+    aware = fit_sogmm(pts, voxel=0.0, max_extent=1.0, residual=0.005, noise=np.full(n, sigma))
+    check_valid(aware)
+    assert aware.K <= 9 < blind.K                  # seed cells of max_extent / sqrt 2: 3 x 3
+    truth = np.c_[rng.uniform(-0.9, 0.9, (4000, 2)), np.zeros(4000)]
+
+    def plane_error(g):
+        lab = g.assign(truth)
+        return np.abs(((truth - g.means[lab, :3]) * g.normals[lab]).sum(1)).mean()
+
+    assert plane_error(aware) < 0.5 * plane_error(blind), (plane_error(aware), plane_error(blind))
+    assert (np.abs(aware.normals[:, 2]) > COS10).all()
+    # a 90-degree fold (floor + wall) with 2 mm noise: the fold is far above the noise, so it splits
+    fold = np.r_[np.c_[rng.uniform(0, 1, (4000, 2)), rng.normal(0, 0.002, 4000)],
+                 np.c_[rng.normal(0, 0.002, 4000), rng.uniform(0, 1, (4000, 2))]]
+    g = fit_sogmm(fold, voxel=0.0, max_extent=2.0, residual=0.005, noise=np.full(len(fold), 0.002))
+    lab = g.assign(fold)
+    d = np.abs(((fold - g.means[lab, :3]) * g.normals[lab]).sum(1))
+    assert d.mean() < 0.006 and g.K >= 2
+    # zero noise: the same fit as without noise
+    z = fit_sogmm(pts, voxel=0.0, max_extent=1.0, residual=0.005, noise=np.zeros(n))
+    assert z.K == blind.K and np.allclose(z.means, blind.means)
+    with pytest.raises(PsimapError, match="noise has"):
+        fit_sogmm(pts, noise=np.ones(3))
+
+
+def test_noise_aware_fit_counts_voxel_averaging():
+    """Voxel averaging of m readings lowers their noise by sqrt(m): with many readings per voxel
+    the same per-reading noise no longer explains a coarse misfit (the fit splits more)."""
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-1.0, 1.0, (40000, 2))
+    pts = np.c_[xy, 0.05 * np.sin(3 * xy[:, 0]) + rng.normal(0.0, 0.01, len(xy))]   # a gentle wave
+    few = fit_sogmm(pts[:4000], voxel=0.0, max_extent=1.0, residual=0.002, noise=np.full(4000, 0.01))
+    many = fit_sogmm(pts, voxel=0.02, max_extent=1.0, residual=0.002, noise=np.full(len(pts), 0.01))
+    assert many.K > few.K

@@ -171,18 +171,20 @@ def lidar_points(lidar: np.ndarray) -> np.ndarray:
     return pts
 
 
-def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+def voxel_downsample(points: np.ndarray, voxel: float, *, return_counts: bool = False):
     """Average every column of `points` [N, D] (x, y, z first) over occupied cubes of side `voxel`
     on the world grid floor(x / voxel) (the same grid as `frames_to_points`, so results agree).
 
     Sort by cell key and average each run with np.add.reduceat: O(N log N), no Python loop. Rows
-    come out in lexicographic cell order, so the result is deterministic. Returns [M, D].
+    come out in lexicographic cell order, so the result is deterministic. Returns [M, D], and with
+    return_counts also the number of input points per cube [M] int64.
     """
     points = np.asarray(points)
     if len(points) == 0:
-        return points.copy()
+        return (points.copy(), np.zeros(0, np.int64)) if return_counts else points.copy()
     if not (voxel > 0 and np.isfinite(voxel)):
         raise PsimapError(f"voxel size must be a positive number, got {voxel}")
     cells = np.floor(points[:, :3].astype(np.float64) / voxel).astype(np.int64)
     _, sums, counts = _reduce_cells(cells, points.astype(np.float64), np.ones(len(points), np.int64))
-    return (sums / counts[:, None]).astype(points.dtype if points.dtype.kind == "f" else np.float32)
+    out = (sums / counts[:, None]).astype(points.dtype if points.dtype.kind == "f" else np.float32)
+    return (out, counts.astype(np.int64)) if return_counts else out

@@ -26,6 +26,9 @@ from psimap.geometry.points import drop_nonfinite, voxel_downsample
 _AUTO_MAX_POINTS = 250_000
 # Grey intensity variance floor: texture only separates components across a >~10 % grey contrast.
 _GREY_VAR_FLOOR = 0.01
+# A component splits only when its residual exceeds this x the mean |noise| its points carry: the
+# sample mean |noise| of >= 16 points has a relative std <= 0.19, so 1.5 is ~2.6 std above it.
+_NOISE_MARGIN = 1.5
 # Candidates per point for the final reassignment / `assign`.
 _CANDIDATES = 6
 _MAX_LEVELS = 64
@@ -242,7 +245,8 @@ def _seed_labels(xyz: np.ndarray, cell_size: float, min_points: int) -> np.ndarr
 
 def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel: float | None = None,
               max_extent: float | None = None, planarity: float = 0.02, residual: float | None = None,
-              min_points: int = 8, em_iters: int = 3, seed: int = 0, progress: bool | None = None) -> SOGMM:
+              min_points: int = 8, em_iters: int = 3, noise: np.ndarray | None = None, seed: int = 0,
+              progress: bool | None = None) -> SOGMM:
     """Fit the SOGMM prior to a point cloud.
 
     points: [N, 3] or [N, 4] (x, y, z world metres[, grey in [0, 1]]); intensity: [N] grey, overrides
@@ -261,6 +265,10 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
       too sparse to split further (min_points), the reported residual can exceed the budget.
     min_points: never create a component with fewer points (tiny clusters stop splitting).
     em_iters: hard-EM steps per split pair. seed: kept for API symmetry; the fit has no randomness.
+    noise: [N] depth-noise std (m) of each input point, or None. A component whose residual sensor
+      noise explains (mean |noise| of its voxel-averaged points, x _NOISE_MARGIN) stops splitting:
+      both the residual budget and the planarity test then ask for more than noise, so a noisy
+      plane stays one large, well-averaged patch instead of splitting down to min_points.
     Returns SOGMM. Raises PsimapError on empty / malformed input.
     """
     del seed  # the fit is deterministic by construction (no sampling)
@@ -279,6 +287,12 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
     elif pts.shape[1] == 3:
         pts = np.concatenate([pts, np.full((len(pts), 1), 0.5)], axis=1)
     n_input = len(pts)
+    if noise is not None:
+        noise = np.asarray(noise, dtype=np.float64).reshape(-1)
+        if len(noise) != len(pts):
+            raise PsimapError(f"noise has {len(noise)} values for {len(pts)} points")
+        # carried as a variance column through the NaN filter and the voxel averaging
+        pts = np.concatenate([pts, np.nan_to_num(noise, nan=0.0, posinf=0.0)[:, None] ** 2], axis=1)
     pts, n_dropped = drop_nonfinite(pts)
     if len(pts) == 0:
         why = f" (all {n_input} points were NaN/inf)" if n_input else ""
@@ -297,8 +311,14 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
     unit = voxel if voxel else (_auto_voxel(pts[:, :3], diag) if diag > 0 else scale * 1e-3)
     if voxel is None:
         voxel = unit
+    counts_in = np.ones(len(pts), np.int64)
     if voxel > 0:
-        pts = voxel_downsample(pts, voxel)
+        pts, counts_in = voxel_downsample(pts, voxel, return_counts=True)
+    point_var = None
+    if noise is not None:
+        # an average of m independent readings has 1/m of their mean variance
+        point_var = pts[:, 4] / np.maximum(counts_in, 1)
+        pts = pts[:, :4]
     if max_extent is None:
         max_extent = max(16.0 * unit, diag / 64.0)
     if residual is None:
@@ -340,7 +360,14 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
                             minlength=len(act_ids)) / np.maximum(counts, 1)
         extent = np.sqrt(12.0 * eigvals[:, 0])
         ratio = eigvals[:, 2] / eigvals[:, 1]
-        want = (extent > max_extent) | (resid > residual) | ((ratio > planarity) & (resid > noise_floor))
+        budget, floor = residual, noise_floor
+        if point_var is not None:
+            # E|noise| = sqrt(2 / pi) sigma for a normal: what the residual is without any misfit
+            noise_abs = np.sqrt(2.0 / np.pi * np.bincount(lab, point_var[pidx], minlength=len(act_ids))
+                                / np.maximum(counts, 1))
+            budget = np.maximum(residual, _NOISE_MARGIN * noise_abs)
+            floor = np.maximum(noise_floor, _NOISE_MARGIN * noise_abs)
+        want = (extent > max_extent) | (resid > budget) | ((ratio > planarity) & (resid > floor))
         split = want & (counts >= 2 * min_points)
         active[act_ids[~split]] = False
         if not split.any():
@@ -415,6 +442,7 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
         "max_extent": float(max_extent),
         "residual_budget": float(residual),
         "planarity": float(planarity),
+        "noise_aware": point_var is not None,
         "levels": levels,
     }
     return SOGMM(means=means, covs=covs, weights=counts / N, normals=normals, tangents=tangents,

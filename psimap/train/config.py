@@ -30,6 +30,9 @@ class TrainConfig:
                                           "crosses 0.5, what the mesh fuses) against the observed depth; "
                                           "the expected-depth loss alone leaves layered surfels whose "
                                           "front one is off")
+    prior_noise: bool = _f(True, "the SOGMM fit knows each point's depth noise (sigma(z) estimated "
+                                 "from the depth images): a patch whose residual the noise explains "
+                                 "stops splitting, so noisy planes stay large, well-averaged patches")
     lambda_geo: float = _f(0.3, "lambda_2: L_geo, SOGMM point-to-plane distance (per metre) + "
                                 "lambda_n normal alignment (the prior's patches fit the noisy points to "
                                 "~1 cm; 1.0 held surfels on them and cost accuracy)")

@@ -156,6 +156,30 @@ def target_spacing(frames, pixels: float) -> float:
     return pixels * med / focal
 
 
+def prior_points(frames, cfg: TrainConfig, log=print):
+    """4D points (x, y, z, grey) [P, 4] of every stride-th valid pixel for the SOGMM fit, and the
+    depth-noise std [P] of each (sigma(z) estimated from the frames' own depth,
+    psimap.geometry.depth_noise), or None when cfg.prior_noise is off or no noise is measurable."""
+    from psimap.geometry.points import backproject_frame
+
+    stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+    pts4 = np.concatenate([backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(), fr.c2w,
+                                             stride=stride) for fr in frames])
+    if not cfg.prior_noise:
+        return pts4, None, stride
+    from psimap.geometry.depth_noise import estimate_depth_noise, noise_at
+
+    model = estimate_depth_noise([fr.depth.numpy() for fr in frames])
+    if len(model[0]) == 0:
+        return pts4, None, stride
+    zc, sc = model
+    log(f"depth noise from the images: sigma {sc[0] * 1000:.1f} mm at {zc[0]:.1f} m .. "
+        f"{sc[-1] * 1000:.1f} mm at {zc[-1]:.1f} m")
+    # backproject_frame keeps the valid pixels of the strided grid in row-major order: same here
+    z = np.concatenate([d[d > 0] for d in (fr.depth.numpy()[::stride, ::stride] for fr in frames)])
+    return pts4, noise_at(z, model), stride
+
+
 # ------------------------------------------------------------------------------------------------
 # initialisation
 
@@ -194,14 +218,11 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
     """
     from scipy.spatial import cKDTree
 
-    from psimap.geometry.points import backproject_frame
     from psimap.geometry.sogmm import SOGMMIndex, fit_sogmm, sample_surfels
 
-    stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
-    pts4 = np.concatenate([backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(), fr.c2w,
-                                             stride=stride) for fr in frames])
+    pts4, noise, stride = prior_points(frames, cfg, log)
     t0 = time.perf_counter()
-    sogmm = fit_sogmm(pts4)
+    sogmm = fit_sogmm(pts4, noise=noise)
     side = sogmm.extents()
     area = float((side[:, 0] * side[:, 1]).sum())
     n_init = max(16, int(round(area / spacing**2)))
@@ -366,12 +387,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
                 "area": float(prev.metrics.get("prior_area", len(prev) * spacing**2))}
         if cfg.use_prior and cfg.lambda_geo > 0:
             from psimap.geometry.sogmm import SOGMMIndex, fit_sogmm
-            from psimap.geometry.points import backproject_frame
 
-            stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
-            pts4 = np.concatenate([backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(),
-                                                     fr.c2w, stride=stride) for fr in frames])
-            index = SOGMMIndex(fit_sogmm(pts4))
+            pts4, noise, _ = prior_points(frames, cfg, log)
+            index = SOGMMIndex(fit_sogmm(pts4, noise=noise))
         log(f"resuming from {getattr(prev, 'path', None) or 'scene'}: {len(prev)} surfels, "
             f"{steps_before} steps done")
     elif cfg.use_prior:
