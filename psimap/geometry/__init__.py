@@ -2,7 +2,8 @@
 
 `fit_sogmm(points) -> SOGMM`, `sample_surfels(sogmm, n)`, `SOGMMIndex`, `point_to_plane`,
 `normal_alignment`, `geo_loss` (psimap.geometry.sogmm); `frames_to_points`, `backproject_frame`,
-`lidar_points`, `voxel_downsample` (psimap.geometry.points). Attributes are imported on first use so
+`lidar_points`, `voxel_downsample` (psimap.geometry.points); `estimate_depth_noise`, `noise_at`
+(psimap.geometry.depth_noise: sensor noise sigma(z) from the depth images). Attributes are imported on first use so
 `import psimap.geometry` stays cheap.
 """
 from __future__ import annotations
@@ -11,7 +12,9 @@ _SOGMM = ("SOGMM", "fit_sogmm", "sample_surfels", "SOGMMIndex", "point_to_plane"
           "geo_loss")
 _POINTS = ("frames_to_points", "backproject_frame", "lidar_points", "voxel_downsample", "drop_nonfinite")
 
-__all__ = list(_SOGMM + _POINTS)
+_NOISE = ("estimate_depth_noise", "noise_at")
+
+__all__ = list(_SOGMM + _POINTS + _NOISE)
 
 
 def __getattr__(name):
@@ -23,4 +26,8 @@ def __getattr__(name):
         from psimap.geometry import points
 
         return getattr(points, name)
+    if name in _NOISE:
+        from psimap.geometry import depth_noise
+
+        return getattr(depth_noise, name)
     raise AttributeError(f"module 'psimap.geometry' has no attribute {name!r}")

@@ -4,8 +4,10 @@ by recursive splitting, whose components are small planar patches.
 Fit: voxel-downsample, seed one component per coarse grid cell, then level by level split every
 component that is too large, not planar enough, or fits its points worse than the point-to-plane
 budget, along its major axis; a few hard-EM steps restricted to each split pair move points to the
-better child. All components of a level are processed at once (moments by np.bincount), so a level
-costs O(N) and the fit O(N log N). A final pass reassigns every point among its nearest components.
+better child. Given each point's depth-noise std, a component whose residual the noise explains
+stops splitting (noisy planes stay large, well-averaged patches). All components of a level are
+processed at once (moments by np.bincount), so a level costs O(N) and the fit O(N log N). A final
+pass reassigns every point among its nearest components.
 
 Training queries (torch): nearest component of a surfel (`SOGMMIndex`), point-to-plane distance
 d(mu_i, M_k) = |(mu_i - mu_k) . n_k|, normal term 1 - |n_i . n_k|, and L_geo.
