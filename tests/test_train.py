@@ -397,3 +397,19 @@ def test_prior_fit_uses_the_measured_depth_noise(scene_frames):
     blind = train(sequence(noisy), cfg(iters=4, prior_noise=False), log=lambda m: None)
     assert aware.metrics["sogmm_K"] < 0.8 * blind.metrics["sogmm_K"], (aware.metrics["sogmm_K"], blind.metrics["sogmm_K"])
     assert torch.isfinite(aware.surfels["means"]).all()
+
+
+def test_prior_noise_with_non_finite_depth(scene_frames):
+    """+inf and NaN depth pixels are invalid for the prior's points and for their noise alike (one
+    noise value per point, or the fit gets arrays of different lengths)."""
+    from psimap.data.frames import Frame
+
+    frames, _ = scene_frames
+    bad = []
+    for k, f in enumerate(frames):
+        d = f.depth.astype(np.float32).copy()
+        d[k % 5::7, ::3] = np.inf
+        d[::11, k % 4::5] = np.nan
+        bad.append(Frame(rgb=f.rgb, depth=d, K=f.K, c2w=f.c2w, name=f.name))
+    scene = train(sequence(bad), cfg(iters=4), log=lambda m: None)
+    assert scene.metrics["sogmm_K"] > 0 and torch.isfinite(scene.surfels["means"]).all()
