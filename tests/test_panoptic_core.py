@@ -426,7 +426,7 @@ def test_query_gaussian_ignores_mask_pixels_that_bleed_onto_the_wall_behind(trim
     q = init_queries([fr], [ClassInfo(2, "box", True)], PanopticConfig(init_frames=1), scene_scale=4.0)
     assert q.count == 1
     assert abs(float(q.mean.detach()[0, 2]) - 1.5) < 0.01
-    sigma = torch.linalg.eigvalsh(q.cov()[0].double()).sqrt()
+    sigma = torch.linalg.eigvalsh(q.cov()[0].detach().double()).sqrt()
     # the box is 0.3 m wide: its own spread only (std 0.087 m, inflated x sqrt 2 to cover unseen sides)
     assert float(sigma.max()) < 0.15, sigma
 
