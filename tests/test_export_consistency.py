@@ -203,16 +203,23 @@ def test_failed_check_gives_nonzero_exit_with_report(tmp_path, monkeypatch, caps
     real = pipeline.export_scene
 
     def export_objects(scene, out, fmt, **kw):     # the objects above instead of a checkpoint's
-        return real([box, ground], out, fmt, check=kw["check"])
+        return real([box, ground], out, fmt, check=kw["check"], pin_unstable=kw["pin_unstable"])
 
     monkeypatch.setattr(pipeline, "export_scene", export_objects)
     opts = SimpleNamespace(ckpt="x.ckpt", out=str(tmp_path / "out"), format="mjcf", completion="none",
-                           no_check=False, densities="")
+                           no_check=False, densities="", no_pin_unstable=True)
     assert cli_export(opts) == 2
     text = capsys.readouterr().out
     assert "simulation check FAILED" in text and "unsupported object(s) fell" in text
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     assert rep["check"]["passed"] is False and rep["check"]["fell"]["box_1"] > 0.2
+    # by default the falling box is pinned (exported static, with the reason) and the check passes
+    opts.no_pin_unstable, opts.out = False, str(tmp_path / "pinned")
+    assert cli_export(opts) == 0
+    text = capsys.readouterr().out
+    assert "simulation check passed" in text and "box_1 exported static: unstable in the settle check" in text
+    rep = json.loads((tmp_path / "pinned" / "report.json").read_text())
+    assert list(rep["check"]["pinned"]) == ["box_1"] and rep["check"]["fell"] == {}
     opts.no_check, opts.out = True, str(tmp_path / "out2")
     assert cli_export(opts) == 0
 
