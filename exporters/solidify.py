@@ -94,21 +94,16 @@ def _carve(shell: np.ndarray, origin: np.ndarray, pitch: float, views, pad: int,
     """
     from scipy import ndimage
 
+    from psimap.camera import nearest_pixels
+
     dims = np.array(shell.shape)
     ii = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"), axis=-1).reshape(-1, 3)
     centres = origin + (ii + 0.5) * pitch
     free = np.zeros(len(ii), bool)
     for v in views:
-        w2c = np.linalg.inv(np.asarray(v.c2w, np.float64))
-        pc = centres @ w2c[:3, :3].T + w2c[:3, 3]
-        z = pc[:, 2]
-        ok = z > 1e-3
-        zs = np.where(ok, z, 1.0)
-        u = np.round(v.K[0, 0] * pc[:, 0] / zs + v.K[0, 2]).astype(np.int64)
-        w = np.round(v.K[1, 1] * pc[:, 1] / zs + v.K[1, 2]).astype(np.int64)
         H, W = v.depth.shape
-        ok &= (u >= 0) & (u < W) & (w >= 0) & (w < H)
-        d = np.where(ok, v.depth[w.clip(0, H - 1), u.clip(0, W - 1)], 0.0)
+        u, w, z, ok = nearest_pixels(centres, v.K, v.c2w, W, H, near=1e-3)
+        d = np.where(ok, v.depth[w, u], 0.0)
         free |= ok & (d > 0) & (z < d - pitch)
     solid = ~free.reshape(dims)
     # only the shell's box (the pad cells around it are outside), the support layer included

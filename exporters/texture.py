@@ -142,16 +142,10 @@ def _depth_tested_pixels(points: np.ndarray, view: View, depth_tolerance: float)
     """Nearest pixel of points [P, 3] in `view`: (x [P], y [P] int64 clipped to the image, z [P] camera
     depth, seen [P] bool). Seen: in front, inside the image, and within max(depth_tolerance, 2 % of
     depth) of the view's valid depth there (an occluded point fails)."""
-    w2c = np.linalg.inv(view.c2w)
-    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = pc[:, 2]
-    front = z > 1e-6
-    zs = np.where(front, z, 1.0)
-    xi = np.round(view.K[0, 0] * pc[:, 0] / zs + view.K[0, 2]).astype(np.int64)
-    yi = np.round(view.K[1, 1] * pc[:, 1] / zs + view.K[1, 2]).astype(np.int64)
+    from psimap.camera import nearest_pixels
+
     H, W = view.depth.shape
-    inb = front & (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
-    xi, yi = xi.clip(0, W - 1), yi.clip(0, H - 1)
+    xi, yi, z, inb = nearest_pixels(points, view.K, view.c2w, W, H)
     d = view.depth[yi, xi]
     seen = inb & (d > 0) & (np.abs(d - z) <= np.maximum(depth_tolerance, 0.02 * z))
     return xi, yi, z, seen

@@ -45,3 +45,19 @@ def supersample_intrinsics(K, ss: int) -> np.ndarray:
     K[:2, :] *= ss
     K[:2, 2] += 0.5 * (ss - 1)
     return K
+
+
+def nearest_pixels(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, width: int, height: int,
+                   near: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Project world points [P, 3] into a pinhole view (K [3, 3], c2w [4, 4] OpenCV camera-to-world):
+    (u [P], v [P]) int64 nearest pixel, clipped into the image so it can index it; z [P] camera
+    depth; inside [P] bool: in front (z > near) and within the image before clipping."""
+    w2c = np.linalg.inv(np.asarray(c2w, np.float64))
+    pc = np.asarray(points, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    z = pc[:, 2]
+    front = z > near
+    zs = np.where(front, z, 1.0)
+    u = np.round(K[0, 0] * pc[:, 0] / zs + K[0, 2]).astype(np.int64)
+    v = np.round(K[1, 1] * pc[:, 1] / zs + K[1, 2]).astype(np.int64)
+    inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return u.clip(0, width - 1), v.clip(0, height - 1), z, inside
