@@ -508,22 +508,27 @@ def test_second_piece_of_a_split_mask_spawns_no_query(split, piece_class, spawne
     assert field.queries.count == 1 + spawned
 
 
-@pytest.mark.parametrize("comatched, dropped", [(0.0, 1), (12.0, 0)])
-def test_queries_matched_to_different_masks_are_not_fragments(comatched, dropped):
+def _two_query_field(**cfg):
+    """Two converged queries on two 20-surfel clusters at (-1, -1, -1) and (1, 1, 1), 120 steps old."""
     from psimap.panoptic.field import PanopticConfig, PanopticField
 
-    # a shelf's query (0) and a mug's (1): the 2D model merged the two in 6 frames that saw both
-    # owning pixels, and the mug's few pixels were never "seen" apart; but in 12 frames the two
-    # were matched to different masks. Those frames count as apart: both queries stay
     means = torch.cat([torch.full((20, 3), -1.0), torch.full((20, 3), 1.0)]) + 0.01 * torch.randn(40, 3)
     feat = torch.tensor([[3.0, 0, 0, 0], [0, 3.0, 0, 0]])
     q = InstanceQueries(feat, torch.tensor([[-1.0] * 3, [1.0] * 3]), torch.eye(3).repeat(2, 1, 1) * 0.04)
-    f = PanopticField(40, [{"id": 1, "name": "thing", "isthing": True}], q,
-                      PanopticConfig(feat_dim=4, distinct_frames=0))
+    f = PanopticField(40, [{"id": 1, "name": "thing", "isthing": True}], q, PanopticConfig(feat_dim=4, **cfg))
     with torch.no_grad():
         f.instance[:20] = feat[0]
         f.instance[20:] = feat[1]
     f.steps = 120
+    return f, means
+
+
+@pytest.mark.parametrize("comatched, dropped", [(0.0, 1), (12.0, 0)])
+def test_queries_matched_to_different_masks_are_not_fragments(comatched, dropped):
+    # a shelf's query (0) and a mug's (1): the 2D model merged the two in 6 frames that saw both
+    # owning pixels, and the mug's few pixels were never "seen" apart; but in 12 frames the two
+    # were matched to different masks. Those frames count as apart: both queries stay
+    f, means = _two_query_field(distinct_frames=0)
     f.matched = torch.tensor([30.0, 20.0])
     f.visible = torch.tensor([30.0, 25.0])
     f.same = torch.tensor([[0.0, 6.0], [6.0, 0.0]])
@@ -533,18 +538,9 @@ def test_queries_matched_to_different_masks_are_not_fragments(comatched, dropped
 
 
 def test_rarely_matched_query_is_useless_by_default():
-    from psimap.panoptic.field import PanopticConfig, PanopticField
-
     # query 1 sat on a cabinet's border: seen in 53 frames, matched in 8 (a real object's query is
     # matched in most frames that see it); the default rate drops it, the cabinet's query stays
-    means = torch.cat([torch.full((20, 3), -1.0), torch.full((20, 3), 1.0)]) + 0.01 * torch.randn(40, 3)
-    feat = torch.tensor([[3.0, 0, 0, 0], [0, 3.0, 0, 0]])
-    q = InstanceQueries(feat, torch.tensor([[-1.0] * 3, [1.0] * 3]), torch.eye(3).repeat(2, 1, 1) * 0.04)
-    f = PanopticField(40, [{"id": 1, "name": "thing", "isthing": True}], q, PanopticConfig(feat_dim=4))
-    with torch.no_grad():
-        f.instance[:20] = feat[0]
-        f.instance[20:] = feat[1]
-    f.steps = 120
+    f, means = _two_query_field()
     f.matched = torch.tensor([138.0, 8.0])
     f.visible = torch.tensor([154.0, 53.0])
     assert f.adjust(means) == 1

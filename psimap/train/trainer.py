@@ -156,15 +156,21 @@ def target_spacing(frames, pixels: float) -> float:
     return pixels * med / focal
 
 
+def point_stride(frames) -> int:
+    """Pixel step that back-projects about 400k points from the whole sequence (prior and init)."""
+    return max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+
+
 def prior_points(frames, cfg: TrainConfig, log=print):
     """4D points (x, y, z, grey) [P, 4] of every stride-th valid pixel for the SOGMM fit, and the
     depth-noise std [P] of each (sigma(z) estimated from the frames' own depth,
     psimap.geometry.depth_noise), or None when cfg.prior_noise is off or no noise is measurable."""
     from psimap.geometry.points import backproject_frame
 
-    stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
-    pts4 = np.concatenate([backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(), fr.c2w,
-                                             stride=stride) for fr in frames])
+    stride = point_stride(frames)
+    per_frame = [backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(), fr.c2w, stride=stride)
+                 for fr in frames]
+    pts4 = np.concatenate(per_frame)
     if not cfg.prior_noise:
         return pts4, None, stride
     from psimap.geometry.depth_noise import estimate_depth_noise, noise_at
@@ -175,8 +181,9 @@ def prior_points(frames, cfg: TrainConfig, log=print):
     zc, sc = model
     log(f"depth noise from the images: sigma {sc[0] * 1000:.1f} mm at {zc[0]:.1f} m .. "
         f"{sc[-1] * 1000:.1f} mm at {zc[-1]:.1f} m")
-    # backproject_frame keeps the valid pixels of the strided grid in row-major order: same here
-    z = np.concatenate([d[d > 0] for d in (fr.depth.numpy()[::stride, ::stride] for fr in frames)])
+    # each point's camera depth: its offset from the camera centre along the optical axis
+    z = np.concatenate([(p[:, :3] - np.asarray(fr.c2w, np.float64)[:3, 3]) @ np.asarray(fr.c2w, np.float64)[:3, 2]
+                        for p, fr in zip(per_frame, frames)])
     return pts4, noise_at(z, model), stride
 
 
@@ -246,7 +253,7 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
 
     from psimap.geometry.points import voxel_downsample
 
-    stride = max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+    stride = point_stride(frames)
     p, c = backprojected(frames, stride)
     pc = voxel_downsample(np.concatenate([p, c], 1), spacing)
     means, colors = pc[:, :3], pc[:, 3:6]
