@@ -13,6 +13,9 @@ def cli_export(opts) -> int:
 
     import psimap
     from psimap.exporters.pipeline import export_scene
+    from psimap.io_utils import check_output_dir
+
+    check_output_dir(opts.out, "export", overwrite=getattr(opts, "overwrite", False), what="--out")
 
     kw = {}
     if getattr(opts, "densities", ""):
@@ -28,7 +31,8 @@ def cli_export(opts) -> int:
     kw["pin_unstable"] = not (getattr(opts, "no_pin_unstable", False) or getattr(opts, "dynamic_all", False))
     scene = psimap.load(opts.ckpt)
     report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
-                          check=not opts.no_check, progress=sys.stderr.isatty(), **kw)
+                          check=not opts.no_check, progress=sys.stderr.isatty(),
+                          overwrite=getattr(opts, "overwrite", False), **kw)
     n, skipped = len(report["objects"]), len(report["skipped"])
     print(f"exported {n} object(s) to {opts.out} ({opts.format}); skipped {skipped}")
     for o in report["objects"]:

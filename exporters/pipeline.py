@@ -48,7 +48,8 @@ def floor_height(objects, background=None) -> float:
 def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] = "mjcf", *,
                  completion: str = "auto", check: bool = True, background=None,
                  progress: bool = False, seed: int = 0, static_classes=None,
-                 min_rigid_surfels: int = MIN_RIGID_SURFELS, pin_unstable: bool = True, **kw) -> dict:
+                 min_rigid_surfels: int = MIN_RIGID_SURFELS, pin_unstable: bool = True, overwrite: bool = False,
+                 **kw) -> dict:
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
@@ -64,9 +65,11 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     PIN_ROUNDS times. A reconstructed support is never exactly flat: a box 4 cm from a table's
     rounded, fused edge rested on one point and tipped off (seed-5 demo scene). Only drift and falls
     are pinned; penetration, NaN and explosions still fail the check.
+    overwrite: write into an `out_dir` psimap did not write (psimap.io_utils rules: an earlier export
+    there is replaced; with overwrite, other files are kept and only same-named ones replaced).
     """
     from psimap.exporters.objects import SceneObject, extract_scene
-    from psimap.io_utils import atomic_dir
+    from psimap.io_utils import atomic_dir, check_output_dir
 
     fmts = list(FORMATS) if format == "all" else ([format] if isinstance(format, str) else list(format))
     bad = [f for f in fmts if f not in FORMATS]
@@ -74,6 +77,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         raise PsimapError(f"unknown export format {bad[0]!r} (choose from {', '.join(FORMATS)}, all)")
     if completion not in ("auto", "none"):
         raise PsimapError(f"completion must be 'auto' or 'none', got {completion!r}")
+    check_output_dir(out_dir, "export", overwrite=overwrite)       # before the work, not after it
     t0 = time.perf_counter()
     scene_steps: dict = {}
     if isinstance(scene_or_objects, (list, tuple)):
@@ -97,7 +101,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
             timings[k] = timings.get(k, 0.0) + v
     report = {"format": sorted(fmts), "floor_z": floor_z, "objects": [], "skipped": [],
               "background": None}
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, "export", overwrite=overwrite) as tmp:
         files = _write_meshes(objs, background, tmp)
         for o in all_objs:
             if o.skipped:

@@ -184,13 +184,16 @@ def validate_state(state, where: str) -> None:
         raise PsimapError(f"{where}: checkpoint classes must be a list")
 
 
-def save_checkpoint(path, state: dict) -> Path:
-    """Validate `state` (refusing NaN) and write it atomically to `path`."""
+def save_checkpoint(path, state: dict, *, overwrite: bool = False) -> Path:
+    """Validate `state` (refusing NaN) and write it atomically to `path`. An existing file there is
+    replaced only if it is a psimap checkpoint, or with `overwrite`."""
     import torch
 
     path = Path(path)
     validate_state(state, f"refusing to save {path}")
-    from psimap.io_utils import atomic_path
+    from psimap.io_utils import atomic_path, check_output_file
+
+    check_output_file(path, overwrite=overwrite, what="checkpoint")
 
     with atomic_path(path) as tmp:
         torch.save(state, tmp)

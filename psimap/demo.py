@@ -12,6 +12,8 @@ from pathlib import Path
 from typing import Callable
 
 from psimap import PsimapError
+from psimap.io_utils import (OVERWRITE_HINT, check_file_in_marked_dir, check_output_dir, mark_output_dir,
+                             read_marker, resolve_output_dir)
 
 
 @dataclass
@@ -25,7 +27,27 @@ class DemoState:
 
     @property
     def data_dir(self) -> Path:
-        return self.out / "scene"
+        return self.out / SCENE
+
+
+# what the demo writes into its folder (the folder is filled in place and never replaced as a whole)
+SCENE, PREVIEW, CKPT, EVAL, EXPORT = "scene", "scene_preview.png", "scene.ckpt", "eval.json", "export"
+
+
+def check_demo_dir(out: Path, *, overwrite: bool = False) -> None:
+    """PsimapError (one line) unless the demo may write into `out`: absent, empty, or an earlier demo
+    folder (psimap's marker), or --overwrite; and each of its outputs may replace what is there
+    (psimap.io_utils rules). Checked before the first stage, so a refusal costs nothing."""
+    p = resolve_output_dir(out, what="--out")
+    if p.is_dir() and any(p.iterdir()) and not overwrite:
+        meta = read_marker(p)
+        if meta is None or meta["kind"] != "demo":
+            what = "a folder psimap did not write" if meta is None else f"a psimap {meta['kind']} output"
+            raise PsimapError(f"--out {out} is {what}; {OVERWRITE_HINT} (nothing of yours is deleted)")
+    check_output_dir(p / SCENE, "scene", overwrite=overwrite, what="--out")
+    check_output_dir(p / EXPORT, "export", overwrite=overwrite, what="--out")
+    for rel in (PREVIEW, CKPT, EVAL):
+        check_file_in_marked_dir(p, rel, overwrite=overwrite, what="--out")
 
 
 def stage_generate(state: DemoState) -> str:
@@ -33,15 +55,17 @@ def stage_generate(state: DemoState) -> str:
     from psimap.data.synthetic import describe, generate
 
     o = state.opts
-    summary = generate(state.data_dir, seed=o.seed, frames=o.frames, width=o.width, height=o.height)
+    summary = generate(state.data_dir, seed=o.seed, frames=o.frames, width=o.width, height=o.height,
+                       overwrite=o.overwrite)
     state.results["generate"] = summary
     return describe(summary)
 
 
 def stage_preview(state: DemoState) -> str:
     """A picture of the generated data: colour, depth, pseudo-labels and ground truth of a few frames."""
-    path = state.out / "scene_preview.png"
+    path = state.out / PREVIEW
     write_preview(state.data_dir, path)
+    mark_output_dir(state.out, "demo", [PREVIEW])
     return f"wrote {path}"
 
 
@@ -55,7 +79,7 @@ def write_preview(scene_dir: Path, png: Path, n_frames: int = 4) -> None:
     import numpy as np
 
     from psimap.data import load
-    from psimap.io_utils import atomic_path
+    from psimap.io_utils import save_figure
 
     seq = load(scene_dir)
     picks = sorted({int(i) for i in np.linspace(0, len(seq) - 1, min(n_frames, len(seq)))})
@@ -78,8 +102,7 @@ def write_preview(scene_dir: Path, png: Path, n_frames: int = 4) -> None:
         ax.set_xticks([])
         ax.set_yticks([])
     fig.tight_layout()
-    with atomic_path(png) as tmp:
-        fig.savefig(tmp, dpi=90)
+    save_figure(fig, png, dpi=90)
     plt.close(fig)
 
 
@@ -98,8 +121,9 @@ def stage_train(state: DemoState) -> str:
     if getattr(o, "panoptic_iters", -1) >= 0:
         cfg.panoptic_iters = o.panoptic_iters
     scene = train(state.data_dir, cfg, progress=sys.stderr.isatty())
-    path = state.out / "scene.ckpt"
-    save_checkpoint(path, scene.state())
+    path = state.out / CKPT
+    save_checkpoint(path, scene.state(), overwrite=o.overwrite)
+    mark_output_dir(state.out, "demo", [CKPT])
     state.results["train"] = scene.metrics
     m = scene.metrics
     return (f"wrote {path}: {len(scene)} surfels, {m.get('queries_final', 0)} queries -> "
@@ -112,8 +136,11 @@ def stage_eval(state: DemoState) -> str:
 
     from psimap.metrics.evaluate import evaluate, to_json
 
-    res = evaluate(state.out / "scene.ckpt", state.data_dir)
-    (state.out / "eval.json").write_text(to_json(res))
+    from psimap.io_utils import write_text_atomic
+
+    res = evaluate(state.out / CKPT, state.data_dir)
+    write_text_atomic(state.out / EVAL, to_json(res))
+    mark_output_dir(state.out, "demo", [EVAL])
     state.results["eval"] = json.loads(to_json(res))
     g, p = res.get("geometry", {}), res.get("panoptic", {})
     parts = []
@@ -130,8 +157,8 @@ def stage_export(state: DemoState) -> str:
     from psimap.exporters.pipeline import export_scene
     from psimap.scene import load_scene
 
-    scene = load_scene(state.out / "scene.ckpt")
-    report = export_scene(scene, state.out / "export", format="all", check=True)
+    scene = load_scene(state.out / CKPT)
+    report = export_scene(scene, state.out / EXPORT, format="all", check=True, overwrite=state.opts.overwrite)
     state.results["export"] = report
     check = report.get("check", {})
     objs = report.get("objects", [])
@@ -160,8 +187,8 @@ def run(opts) -> int:
     if not opts.out:
         raise PsimapError("an output folder is required (--out DIR)")
     out = Path(opts.out)
-    if out.exists() and not out.is_dir():
-        raise PsimapError(f"--out {out} exists and is not a folder")
+    check_demo_dir(out, overwrite=opts.overwrite)
+    mark_output_dir(out, "demo")
     state = DemoState(opts, out)
     t_all = time.perf_counter()
     for i, (name, stage) in enumerate(STAGES, 1):

@@ -13,6 +13,15 @@ def opt(default, help: str, **extra):
     return field(default=default, metadata={"help": help, **extra})
 
 
+def overwrite_opt(what: str):
+    """--overwrite of a command whose output is a folder, a file or a plot (psimap.io_utils rules)."""
+    text = {"folder": "write into --out even when it holds files psimap did not write (files of the same name "
+                      "are replaced; nothing else is deleted)",
+            "file": "replace --out even when it is a file psimap did not write",
+            "plot": "replace --plot even when it is a file psimap did not write"}[what]
+    return opt(False, text)
+
+
 def pos(help: str, **extra):
     """A required positional CLI argument."""
     return field(default=None, metadata={"help": help, "positional": True, **extra})
@@ -29,6 +38,7 @@ class GenerateOptions:
     noise: float = opt(0.15, "pseudo-label noise rate (merges, splits, misses, flips), 0..1")
     lidar: bool = opt(False, "also write a LiDAR sweep with intensity")
     pose_noise: float = opt(0.0, "std of pose noise (metres / radians) applied to the written poses")
+    overwrite: bool = overwrite_opt("folder")
 
 
 @dataclass
@@ -41,6 +51,7 @@ class EvalOptions:
                                 "metrics' standard error is within budget)")
     seed: int = opt(0, "seed for the surface sampling")
     plot: str = opt("", "also write a PNG: P/R/F1 vs threshold (mesh) or per-class PQ/IoU (labels)")
+    overwrite: bool = overwrite_opt("plot")
 
 
 @dataclass
@@ -52,6 +63,7 @@ class DemoOptions:
     height: int = opt(120, "image height of the generated scene")
     iters: int = opt(0, "geometry training steps (0 = the training default)")
     panoptic_iters: int = opt(-1, "joint panoptic steps (-1 = the training default)")
+    overwrite: bool = overwrite_opt("folder")
 
 
 @dataclass
@@ -63,6 +75,7 @@ class TrainOptions:
     resume: str = opt("", "checkpoint to resume from (its surfels; --iters more steps)")
     no_prior: bool = opt(False, "train without the SOGMM prior (plain 2DGS losses; a baseline)")
     fast: bool = opt(False, "use every core in the renderer (faster, not bit-reproducible)")
+    overwrite: bool = overwrite_opt("file")
 
 
 @dataclass
@@ -70,6 +83,7 @@ class MeshOptions:
     ckpt: str = pos("trained scene checkpoint")
     out: str = opt("mesh.ply", "mesh file to write")
     voxel: float = opt(0.0, "TSDF voxel size in metres (0 = from the scene's pixel footprint)")
+    overwrite: bool = overwrite_opt("file")
 
 
 @dataclass
@@ -86,6 +100,7 @@ class ExportOptions:
                                     "barely seen objects too)")
     no_pin_unstable: bool = opt(False, "keep objects that do not rest stably in the settle check dynamic "
                                        "(the check then fails) instead of exporting them static")
+    overwrite: bool = overwrite_opt("folder")
 
 
 @dataclass
@@ -95,3 +110,5 @@ class LabelsOptions:
     out: str = opt("labels", "output folder (COCO panoptic)")
     topk: int = opt(0, "blend only the K largest weights per pixel (faster, see benchmarks/panoptic.py's "
                        "Top-K curve); 0 = all")
+    overwrite: bool = overwrite_opt("folder")
+

@@ -59,10 +59,12 @@ class Scene:
         return build_state(self.surfels, classes=self.classes, cameras=self.cameras,
                            queries=self.queries, config=self.config, metrics=self.metrics)
 
-    def save(self, path) -> Path:
+    def save(self, path, *, overwrite: bool = False) -> Path:
+        """Write the checkpoint (an existing file is replaced only if it is a psimap checkpoint, or
+        with `overwrite`)."""
         from psimap.checkpoint import save_checkpoint
 
-        return save_checkpoint(path, self.state())
+        return save_checkpoint(path, self.state(), overwrite=overwrite)
 
     def __len__(self) -> int:
         return int(self.surfels["means"].shape[0])

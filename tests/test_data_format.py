@@ -144,7 +144,7 @@ def test_write_is_atomic_and_rejects_bad_frames(tmp_path):
     assert len(load(tmp_path / "s")) == 1
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
-    with pytest.raises(PsimapError, match="not a scene folder; refusing"):
+    with pytest.raises(PsimapError, match="folder psimap did not write"):
         write_scene(tmp_path / "mine", frames, CLASSES)
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
     with pytest.raises(PsimapError, match="reserved"):

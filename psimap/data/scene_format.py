@@ -23,7 +23,7 @@ import numpy as np
 
 from psimap import PsimapError
 from psimap.data.frames import ClassInfo, Frame, FrameSequence
-from psimap.io_utils import atomic_dir, atomic_path
+from psimap.io_utils import atomic_dir, atomic_path, check_output_dir
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -345,7 +345,8 @@ def _as_label(arr, what: str, hw) -> np.ndarray:
 def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[ClassInfo], *,
                 depth_unit_scale_factor: float = 0.001, gt_mesh=None,
                 gt_face_instance: np.ndarray | None = None, gt_face_semantic: np.ndarray | None = None,
-                gt_objects: dict | None = None, gt_instances: list[dict] | None = None) -> Path:
+                gt_objects: dict | None = None, gt_instances: list[dict] | None = None,
+                overwrite: bool = False) -> Path:
     """Write frames (+ optional ground truth) as a psimap scene folder, atomically.
 
     frames: Frame list (rgb [H,W,3] in [0,1], depth [H,W] metres, K [3,3], c2w [4,4] OpenCV, optional
@@ -354,7 +355,8 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
     gt_mesh: trimesh.Trimesh; gt_face_instance / gt_face_semantic: [F] int; gt_objects: {instance id:
     trimesh}; gt_instances: [{"id", "semantic", "name", ...}] (extra JSON-able fields are kept). Depth is quantised to
     `depth_unit_scale_factor` metres; non-finite or negative depth is written as invalid (0).
-    An existing scene folder at `out_dir` is replaced; any other non-empty folder is refused.
+    A scene folder psimap generated at `out_dir` is replaced; any other non-empty folder is refused
+    unless `overwrite` (psimap.io_utils rules: nothing psimap did not write is deleted).
     Returns the folder path.
     """
     out_dir = Path(out_dir)
@@ -379,17 +381,14 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
     if any(c.id == 0 for c in classes):
         raise PsimapError("write_scene: class id 0 is reserved for void / no label")
 
-    if out_dir.is_file() or (out_dir.is_dir() and any(out_dir.iterdir())
-                             and not (out_dir / TRANSFORMS).is_file()):
-        # The folder is replaced as a whole: never do that to something that is not a scene folder.
-        raise PsimapError(f"write_scene: {out_dir} exists and is not a scene folder; refusing to replace it")
+    check_output_dir(out_dir, "scene", overwrite=overwrite)
 
     from concurrent.futures import ThreadPoolExecutor
 
     from tqdm import tqdm
 
     # PNG encoding (zlib) releases the GIL: encode on a few threads while the next frame is checked.
-    with atomic_dir(out_dir) as tmp, ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+    with atomic_dir(out_dir, "scene", overwrite=overwrite) as tmp, ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         png_jobs = []
         for sub in ("images", "depth"):
             (tmp / sub).mkdir()

@@ -528,14 +528,16 @@ def render(scene, mesh: SceneMesh, mats: Materials, lights: np.ndarray, K: np.nd
 def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, height: int = 120,
              n_objects: int | None = None, label_noise: float = 0.15, lidar: bool = False,
              pose_noise: float = 0.0, depth_noise: bool | N.DepthNoise = True, ceiling: bool | None = None,
-             labels: N.LabelNoise | None = None, lidar_every: int = 10, progress: bool | None = None) -> dict:
+             labels: N.LabelNoise | None = None, lidar_every: int = 10, progress: bool | None = None,
+             overwrite: bool = False) -> dict:
     """Write a synthetic scene with exact ground truth to `out_dir` (scene format of DESIGN.md).
 
     label_noise: one knob for the pseudo-label errors (`LabelNoise.from_rate`); `labels` overrides
     it with explicit rates. depth_noise: sensor noise and invalid pixels on the written depth (True:
     the default sensor model; a DepthNoise: that model, e.g. `DepthNoise.degraded(3.0)`; False: none).
     pose_noise: std (m / rad) of the error on the written poses (ground truth renders use the true
-    ones). lidar: a sweep every `lidar_every` frames from the camera position. Returns a summary dict.
+    ones). lidar: a sweep every `lidar_every` frames from the camera position. overwrite: write into
+    a folder psimap did not write (psimap.io_utils rules). Returns a summary dict.
     """
     from tqdm import tqdm
 
@@ -551,6 +553,9 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
         raise PsimapError(f"pose noise must be a finite value >= 0, got {pose_noise}")
     if n_objects is not None and n_objects != 0 and not 1 <= n_objects <= 40:
         raise PsimapError(f"number of objects must lie in 1..40, got {n_objects}")
+    from psimap.io_utils import check_output_dir
+
+    check_output_dir(out_dir, "scene", overwrite=overwrite)        # before the work, not after it
     t0 = time.perf_counter()
     progress = sys.stderr.isatty() if progress is None else progress
     stream = np.random.SeedSequence(int(seed)).spawn(7)
@@ -612,7 +617,7 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
                   "support": p.support} for p in lay.objects]
     write_scene(out_dir, out_frames, classes(), gt_mesh=trimesh.Trimesh(mesh.vertices, mesh.faces, process=False),
                 gt_face_instance=mesh.face_instance, gt_face_semantic=mesh.face_semantic,
-                gt_objects=mesh.objects, gt_instances=instances)
+                gt_objects=mesh.objects, gt_instances=instances, overwrite=overwrite)
     timings["write"] = time.perf_counter() - t0 - sum(timings.values())
 
     return {
@@ -632,7 +637,7 @@ def cli_generate(opts) -> int:
         raise PsimapError("an output folder is required")
     s = generate(opts.out, seed=opts.seed, frames=opts.frames, width=opts.width, height=opts.height,
                  n_objects=opts.objects or None, label_noise=opts.noise, lidar=opts.lidar,
-                 pose_noise=opts.pose_noise)
+                 pose_noise=opts.pose_noise, overwrite=opts.overwrite)
     print(describe(s))
     return 0
 

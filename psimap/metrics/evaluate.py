@@ -271,21 +271,22 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
                           f"gt/semantic label maps and a checkpoint with panoptic labels)")
     out = {}
     if do_geometry:
-        plot_geo = plot
-        if plot and do_panoptic:
-            plot_geo = str(Path(plot).with_name(Path(plot).stem + "_geometry" + Path(plot).suffix))
+        plot_geo = plot_path(plot, "geometry") if plot and do_panoptic else plot
         out["geometry"] = evaluate_geometry(scene.mesh(), data, threshold=threshold, samples=samples,
                                             seed=seed, plot=plot_geo, progress=progress)
     if do_panoptic:
-        plot_pan = plot
-        if plot and do_geometry:
-            plot_pan = str(Path(plot).with_name(Path(plot).stem + "_panoptic" + Path(plot).suffix))
+        plot_pan = plot_path(plot, "panoptic") if plot and do_geometry else plot
         from psimap.threads import single_threaded
 
         with single_threaded():     # one label render per frame: spinning pools cost more than they give
             out["panoptic"] = evaluate_panoptic(_RenderedLabels(scene, seq), data, progress=progress,
                                                 plot=plot_pan)
     return out
+
+
+def plot_path(plot: str, part: str) -> str:
+    """Where the `part` ("geometry" / "panoptic") plot goes when a checkpoint gets both plots."""
+    return str(Path(plot).with_name(Path(plot).stem + "_" + part + Path(plot).suffix))
 
 
 def evaluate(pred, data, *, threshold: float = 0.05, samples: int = 200_000, seed: int = 0,
@@ -328,7 +329,7 @@ def plot_panoptic(result: dict, path, class_names: dict[int, str] | None = None)
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from psimap.io_utils import atomic_path
+    from psimap.io_utils import save_figure
 
     per = result["per_class"]
     cls = sorted(per)
@@ -342,8 +343,7 @@ def plot_panoptic(result: dict, path, class_names: dict[int, str] | None = None)
     ax.legend()
     ax.set_title(f"scene PQ {result['pq']:.3f} (per-frame {result['pq_frame']:.3f}), mIoU {result['miou']:.3f}")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -415,6 +415,11 @@ def format_table(result: dict) -> str:
 
 def cli_eval(opts) -> int:
     """`psimap eval PRED DATA [--json]`."""
+    if getattr(opts, "plot", ""):
+        from psimap.io_utils import check_output_file
+
+        for p in (opts.plot, plot_path(opts.plot, "geometry"), plot_path(opts.plot, "panoptic")):
+            check_output_file(p, overwrite=opts.overwrite, what="--plot")     # before the work
     result = evaluate(opts.pred, opts.data, threshold=opts.threshold, samples=opts.samples,
                       seed=opts.seed, plot=getattr(opts, "plot", "") or None, progress=True)
     print(to_json(result) if opts.json else format_table(result))

@@ -317,7 +317,7 @@ def plot_geometry(dist: SurfaceDistances, path, threshold: float = 0.05) -> None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from psimap.io_utils import atomic_path
+    from psimap.io_utils import save_figure
 
     top = max(4 * threshold, float(np.quantile(np.concatenate([dist.pred_to_gt, dist.gt_to_pred]), 0.99)))
     ts = np.linspace(0, top, 200)[1:]
@@ -341,6 +341,5 @@ def plot_geometry(dist: SurfaceDistances, path, threshold: float = 0.05) -> None
     b.legend()
     b.set_title("distance histograms")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
+    save_figure(fig, path, dpi=100)
     plt.close(fig)

@@ -174,21 +174,23 @@ def _views(scene, frames_or_data):
 
 
 def write_labels(scene, frames_or_data, out_dir, *, topk: int | None = None, backend: str = "auto",
-                 progress: bool = False) -> Path:
+                 progress: bool = False, overwrite: bool = False) -> Path:
     """Write 3D-consistent COCO panoptic labels of every view to `out_dir` (atomically).
 
     frames_or_data: a list / sequence of Frame, a DATA folder (its cameras and image stems), or None
     for the scene's own cameras. One PNG per view named after its image stem (segment id = 3D
     instance id; stuff: STUFF_OFFSET + class id) and `panoptic.json` (categories from the scene's
     class table; thing segments take their instance's class by majority vote). Returns the json path.
+    overwrite: write into an `out_dir` psimap did not write (psimap.io_utils rules).
     """
     from tqdm import tqdm
 
-    from psimap.io_utils import atomic_dir
+    from psimap.io_utils import atomic_dir, check_output_dir
     from psimap.panoptic.coco import write_coco_panoptic
 
     if not scene.classes:
         raise PsimapError("the scene has no class table: it carries no panoptic labels to render")
+    check_output_dir(out_dir, "labels", overwrite=overwrite)       # before the renders, not after
     views = _views(scene, frames_or_data)
     votes = instance_classes(scene)
     out_dir = Path(out_dir)
@@ -201,7 +203,7 @@ def write_labels(scene, frames_or_data, out_dir, *, topk: int | None = None, bac
     from psimap.threads import single_threaded
 
     # one small render per frame: spinning thread pools cost more than they give (psimap.threads)
-    with single_threaded(), atomic_dir(out_dir) as tmp:
+    with single_threaded(), atomic_dir(out_dir, "labels", overwrite=overwrite) as tmp:
         write_coco_panoptic(tmp, rendered(), scene.classes, votes)
     return out_dir / "panoptic.json"
 
@@ -219,15 +221,19 @@ def cli_labels(opts) -> int:
     """`psimap labels scene.ckpt DATA --out DIR [--topk K]`."""
     import psimap
 
+    from psimap.io_utils import check_output_dir
+
     ckpt = Path(opts.ckpt)
     if not ckpt.is_file():
         raise PsimapError(f"no such checkpoint: {ckpt}")
+    check_output_dir(opts.out, "labels", overwrite=opts.overwrite, what="--out")
     scene = psimap.load(ckpt)
     if not has_labels(scene):
         raise PsimapError(f"{ckpt}: the checkpoint has no panoptic labels (train with the panoptic field)")
     if opts.topk < 0:
         raise PsimapError(f"--topk must be >= 0 (0 = all), got {opts.topk}")
-    path = write_labels(scene, opts.data, opts.out, topk=opts.topk or None, progress=True)
+    path = write_labels(scene, opts.data, opts.out, topk=opts.topk or None, progress=True,
+                        overwrite=opts.overwrite)
     import json
 
     meta = json.loads(Path(path).read_text())

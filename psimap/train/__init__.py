@@ -30,6 +30,9 @@ def cli_train(opts) -> int:
         raise PsimapError(f"no such data folder: {opts.data}")
     if opts.iters < 0:
         raise PsimapError(f"--iters must be >= 0, got {opts.iters}")
+    from psimap.io_utils import check_output_file
+
+    check_output_file(opts.out, overwrite=opts.overwrite, what="--out")     # before training, not after
     cfg = TrainConfig(seed=opts.seed)
     if opts.iters:
         cfg.iters = opts.iters
@@ -38,7 +41,7 @@ def cli_train(opts) -> int:
     if getattr(opts, "fast", False):
         cfg.deterministic = False
     scene = train(opts.data, cfg, resume=opts.resume or None)
-    save_checkpoint(opts.out, scene.state())
+    save_checkpoint(opts.out, scene.state(), overwrite=opts.overwrite)
     print(f"wrote {opts.out}: {len(scene)} surfels, {scene.metrics['steps']} steps, "
           f"{scene.metrics['seconds']:.1f} s")
     return 0
@@ -49,12 +52,13 @@ def cli_mesh(opts) -> int:
     from pathlib import Path
 
     from psimap import PsimapError
-    from psimap.io_utils import atomic_path
+    from psimap.io_utils import check_output_file, export_mesh_file
     from psimap.scene import load_scene
 
     out = Path(opts.out)
     if out.suffix.lower() not in (".ply", ".obj", ".glb", ".stl", ".off"):
         raise PsimapError(f"--out {out}: mesh file must end in .ply, .obj, .glb, .stl or .off")
+    check_output_file(out, overwrite=opts.overwrite, what="--out")
     scene = load_scene(opts.ckpt)
     voxel = getattr(opts, "voxel", 0.0) or None
     import sys
@@ -62,8 +66,7 @@ def cli_mesh(opts) -> int:
     mesh = scene.mesh(voxel_size=voxel, progress=sys.stderr.isatty())
     if len(mesh.faces) == 0:
         raise PsimapError(f"{opts.ckpt}: the rendered depth fused into an empty mesh")
-    with atomic_path(out) as tmp:
-        mesh.export(tmp)
+    export_mesh_file(mesh, out)
     info = mesh.metadata.get("tsdf", {})
     print(f"wrote {out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces "
           f"(voxel {info.get('voxel_size', float('nan')) * 100:.2f} cm)")
