@@ -1,0 +1,175 @@
+"""Gravity from a capture's surfaces and cameras, in whatever frame the capture came (issue #16 §2).
+
+Scenes that break the Z-up assumption: the same room in Y-up (phones), Z-down (a robot's hand-eye
+frame) and arbitrary (COLMAP) frames; a tabletop seen by a wrist camera looking straight down with a
+fixed yaw (the upright-camera cue points sideways there); a corridor whose walls outweigh its floor.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from psimap import PsimapError
+from psimap.camera import look_at
+from psimap.geometry.gravity import (estimate_up, parse_up, resolve_up, rotation_to_z_up, snap_to_axis,
+                                     up_scores)
+
+
+def _samples(meshes, n=20000, seed=0):
+    """points, normals, weights of an even surface sampling of the meshes (weights: equal area)."""
+    m = trimesh.util.concatenate(meshes)
+    pts, face = trimesh.sample.sample_surface(m, n, seed=seed)
+    return pts, m.face_normals[face], np.full(len(pts), 1.0 / len(pts))
+
+
+def _room(w=6.0, d=3.0, h=2.8, ceiling=True, furniture=True):
+    """An open box room (inward-facing walls), a table and two boxes on it."""
+    parts = [trimesh.creation.box(extents=[w, d, 0.02]).apply_translation([0, 0, -0.01])]
+    for sx in (-1, 1):
+        parts.append(trimesh.creation.box(extents=[0.02, d, h]).apply_translation([sx * w / 2, 0, h / 2]))
+    for sy in (-1, 1):
+        parts.append(trimesh.creation.box(extents=[w, 0.02, h]).apply_translation([0, sy * d / 2, h / 2]))
+    if ceiling:
+        parts.append(trimesh.creation.box(extents=[w, d, 0.02]).apply_translation([0, 0, h]))
+    if furniture:
+        parts.append(trimesh.creation.box(extents=[1.2, 0.8, 0.04]).apply_translation([0.5, 0.2, 0.74]))
+        parts.append(trimesh.creation.box(extents=[0.2, 0.15, 0.1]).apply_translation([0.4, 0.1, 0.81]))
+        parts.append(trimesh.creation.cylinder(radius=0.04, height=0.12).apply_translation([0.7, 0.3, 0.82]))
+    return parts
+
+
+def _handheld(n=24, seed=0, w=6.0, d=3.0):
+    rng = np.random.default_rng(seed)
+    c2w = []
+    for _ in range(n):
+        eye = np.array([rng.uniform(-w / 3, w / 3), rng.uniform(-d / 4, d / 4), rng.uniform(1.2, 1.7)])
+        target = np.array([rng.uniform(-w / 2, w / 2), rng.uniform(-d / 2, d / 2), rng.uniform(0.2, 1.4)])
+        up = np.array([rng.normal(0, 0.1), rng.normal(0, 0.1), 1.0])          # a little roll
+        c2w.append(look_at(eye, target, up))
+    return np.stack(c2w)
+
+
+def _wrist_top_down(n=16, seed=0):
+    """A robot wrist camera over a table looking straight down, always with the same yaw."""
+    rng = np.random.default_rng(seed)
+    c2w = []
+    for _ in range(n):
+        eye = np.array([0.5 + rng.uniform(-0.2, 0.2), 0.2 + rng.uniform(-0.15, 0.15), 1.25])
+        c2w.append(look_at(eye, eye - [0, 0, 1.0], up=(1.0, 0.0, 0.0)))
+    return np.stack(c2w)
+
+
+def _rotated(R, pts, nrm, c2w):
+    T = np.eye(4)
+    T[:3, :3] = R
+    return pts @ R.T, nrm @ R.T, T @ c2w
+
+
+FRAMES = {"z-up": np.eye(3), "y-up": Rotation.from_euler("x", -90, degrees=True).as_matrix(),
+          "z-down": Rotation.from_euler("x", 180, degrees=True).as_matrix(),
+          "colmap": Rotation.from_euler("zyx", [37, -71, 112], degrees=True).as_matrix()}
+
+
+def _angle(a, b):
+    return np.degrees(np.arccos(np.clip(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+
+@pytest.mark.parametrize("frame", list(FRAMES))
+@pytest.mark.parametrize("ceiling", [True, False])
+def test_room_up_in_any_frame(frame, ceiling):
+    pts, nrm, w = _samples(_room(ceiling=ceiling))
+    R = FRAMES[frame]
+    P, N, C = _rotated(R, pts, nrm, _handheld())
+    est = estimate_up(P, N, w, C)
+    true_up = R @ [0, 0, 1]
+    assert _angle(est.up, true_up) < 0.5, (frame, est.up, est.scores)
+    assert est.margin > 0.3
+    # the rotation takes the estimate to +z, and the capture's up to within the estimate's error
+    np.testing.assert_allclose(est.rotation @ est.up, [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(est.rotation), 1.0, atol=1e-12)
+    if frame != "colmap":        # axis-aligned frames are snapped exactly
+        np.testing.assert_array_equal(est.up, true_up.round())
+
+
+@pytest.mark.parametrize("frame", list(FRAMES))
+def test_top_down_wrist_camera_over_a_table(frame):
+    """The image's up points along the table here (a fixed-yaw wrist): only the supports and the
+    viewing direction tell gravity; distant walls are seen too."""
+    parts = _room(w=7.0, d=5.0, ceiling=False)
+    pts, nrm, w = _samples(parts)
+    R = FRAMES[frame]
+    P, N, C = _rotated(R, pts, nrm, _wrist_top_down())
+    est = estimate_up(P, N, w, C)
+    assert _angle(est.up, R @ [0, 0, 1]) < 0.5, (frame, est.scores)
+    # the upright-camera cue alone would have picked the robot's x axis
+    assert up_scores(R @ [1, 0, 0], N, w, -C[:, :3, 1], C[:, :3, 2])["upright"] > 0.99
+
+
+def test_corridor_whose_walls_outweigh_the_floor():
+    """Walls 2x the floor's area: the supports' sign and the cameras still find the floor."""
+    parts = _room(w=12.0, d=1.6, h=3.0, ceiling=False, furniture=False)
+    assert sum(m.area for m in parts[1:]) > 2 * parts[0].area
+    pts, nrm, w = _samples(parts)
+    R = FRAMES["y-up"]
+    P, N, C = _rotated(R, pts, nrm, _handheld(w=12.0, d=1.6))
+    est = estimate_up(P, N, w, C)
+    np.testing.assert_array_equal(est.up, [0, 1, 0])
+
+
+def test_tilted_capture_is_levelled_to_the_floor():
+    """A SLAM world 4 degrees off gravity: the estimate is the floor normal, not the nearest axis."""
+    R = Rotation.from_euler("xy", [4.0, -2.0], degrees=True).as_matrix()
+    pts, nrm, w = _samples(_room())
+    P, N, C = _rotated(R, pts, nrm, _handheld())
+    est = estimate_up(P, N, w, C)
+    assert _angle(est.up, R @ [0, 0, 1]) < 0.3
+    assert _angle(est.up, [0, 0, 1]) > 4.0
+
+
+def test_noisy_normals_and_bad_rows():
+    rng = np.random.default_rng(1)
+    pts, nrm, w = _samples(_room())
+    nrm = nrm + rng.normal(0, 0.15, nrm.shape)             # ~9 degrees of normal noise
+    nrm[:50] = np.nan
+    w = w.copy()
+    w[50:60] = 0
+    pts[60:70] = np.inf
+    R = FRAMES["colmap"]
+    with np.errstate(invalid="ignore"):
+        P, N, C = _rotated(R, pts, nrm, _handheld())
+    est = estimate_up(P, N, w, C)
+    assert _angle(est.up, R @ [0, 0, 1]) < 1.0
+
+
+def test_cameras_only_and_nothing_at_all():
+    R = FRAMES["y-up"]
+    C = np.einsum("ij,njk->nik", np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]), _handheld())
+    est = estimate_up(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), C)
+    assert _angle(est.up, [0, 1, 0]) < 20
+    none = estimate_up(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 4, 4)))
+    assert none.source == "default" and np.array_equal(none.up, [0, 0, 1])
+
+
+def test_parse_and_rotation():
+    assert parse_up("auto") is None and parse_up("") is None
+    np.testing.assert_array_equal(parse_up("-Y"), [0, -1, 0])
+    np.testing.assert_allclose(parse_up("0,0,2"), [0, 0, 1])
+    for bad in ("up", "1,2", "0,0,0", "nan,0,1"):
+        with pytest.raises(PsimapError, match="--up"):
+            parse_up(bad)
+    rng = np.random.default_rng(0)
+    for u in list(rng.normal(size=(20, 3))) + [np.array([0, 0, -1.0]), np.array([0, 0, 1.0]),
+                                                np.array([1e-9, 0, -1.0])]:
+        R = rotation_to_z_up(u)
+        np.testing.assert_allclose(R @ (u / np.linalg.norm(u)), [0, 0, 1], atol=1e-9)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) > 0
+    # y-up is a quarter turn about x: y -> z, z -> -y
+    np.testing.assert_allclose(rotation_to_z_up([0, 1, 0]), [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-15)
+    assert np.array_equal(snap_to_axis(np.array([0.01, 0.0, 0.99995])), [0, 0, 1])
+    tilted = np.array([np.sin(np.radians(2)), 0, np.cos(np.radians(2))])
+    assert np.array_equal(snap_to_axis(tilted), tilted)
+    given = resolve_up("-z", None, None, None, None)
+    assert given.source == "given" and np.allclose(given.rotation @ [0, 0, -1], [0, 0, 1])
