@@ -1,0 +1,514 @@
+"""The static world: collision geometry for everything that does not move (issue #16 §1).
+
+A robot and the objects it handles touch far more than the floor: table and counter tops, shelves,
+walls, static furniture, and surfaces nobody labelled. From the fused background surface (stuff
+classes and unlabelled pixels, world Z-up) this module builds colliders that follow the observed
+surface, the same set for every writer:
+
+- supports: up-facing surfaces grouped by height, split into connected pieces in plan view; each
+  piece becomes a convex slab (its footprint's convex hull, extruded `thickness` down from the
+  fitted height). A piece whose footprint is far from convex (an L-shaped counter) is split along
+  its principal axis until each part fills its hull. What is occluded on a support (where objects
+  stand) is filled: a table top continues under the mug on it.
+- walls: vertical surfaces grouped by direction and offset, split into pieces in their own plane,
+  each a slab `thickness` deep behind the observed side; a wall with a door opening is split around
+  it rather than closed.
+- clutter: whatever surface is left (unlabelled boxes, a sofa's front, table legs), in connected
+  pieces, each the convex hull of its points and their copy `thickness` behind the surface,
+  bisected until the hull stays within the error budget of the surface it stands for.
+- the floor: the lowest support that is a real share of the supported area (not merely the lowest
+  point: a desk capture's carpet is 73 cm below the desk); when no floor was seen, a safety plane
+  under everything, marked unobserved.
+
+Every collider is a convex mesh in world coordinates (the writers emit them as convex mesh geoms /
+convexHull colliders). The reported error is measured, not assumed: surface points of the background
+sampled by area, each one's distance to the nearest collider surface.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# A face is horizontal (support) / vertical (wall) within this angle: fused TSDF surfaces of a flat
+# table top scatter a few degrees.
+PLANE_DEGREES = 12.0
+# Smallest support worth a collider (m^2): a 10 x 10 cm stool top or shelf board end.
+MIN_SUPPORT_AREA = 0.01
+# Smallest wall piece (m^2) and clutter piece (m^2) worth a collider.
+MIN_WALL_AREA = 0.05
+MIN_CLUTTER_AREA = 0.002
+# Slab depth below a support top / behind a wall (m): thick enough that a falling object cannot
+# tunnel through in one 2 ms step at 3 m/s (6 mm), thin enough not to reach what is below.
+THICKNESS = 0.04
+# A convex slab may not close an open gap of this radius (m): a 20 cm wide door or corner a thing
+# could pass through.
+GAP_RADIUS = 0.1
+# The floor is the lowest support holding at least this share of the supported area.
+FLOOR_SHARE = 0.2
+# Nothing but noise lies below a floor: at most this share of the surface, further than
+# FLOOR_CLEARANCE (m) below it.
+MAX_AREA_BELOW_FLOOR = 0.02
+FLOOR_CLEARANCE = 0.1
+MAX_SPLIT_DEPTH = 4
+MAX_CLUTTER_PARTS = 64
+
+
+@dataclass
+class StaticCollider:
+    """One convex collider of the static world. mesh: trimesh.Trimesh, convex, world frame, metres.
+    role: "support" | "ceiling" | "wall" | "clutter"; height: top of a support (m), else None."""
+
+    name: str
+    role: str
+    mesh: object
+    height: float | None = None
+    area: float = 0.0                   # observed surface area it stands for (m^2)
+
+
+@dataclass
+class Support:
+    """A flat surface things can rest on: top height (m) and plan-view footprint polygon [k, 2]."""
+
+    height: float
+    polygon: np.ndarray
+    area: float
+
+    def contains(self, xy, margin: float = 0.0) -> bool:
+        """Whether the plan-view point xy [2] lies in the footprint grown by `margin` (m)."""
+        from matplotlib.path import Path as MplPath
+
+        if len(self.polygon) < 3:
+            return False
+        return bool(MplPath(self.polygon).contains_point(np.asarray(xy, np.float64), radius=2 * margin)
+                    or MplPath(self.polygon[::-1]).contains_point(np.asarray(xy, np.float64), radius=2 * margin))
+
+
+@dataclass
+class StaticEnvironment:
+    """The static world of an export: its colliders, the floor, the supports, and how well the
+    colliders follow the observed surface (error_m: 95th percentile distance of the background's
+    surface points to the nearest collider surface; coverage: share of that surface within budget_m)."""
+
+    floor_z: float | None
+    floor_observed: bool
+    colliders: list = field(default_factory=list)
+    supports: list = field(default_factory=list)
+    error_m: float = 0.0
+    mean_error_m: float = 0.0
+    coverage: float = 1.0
+    budget_m: float = 0.0
+
+    def support_under(self, xy, z_bottom: float, *, max_gap: float = 0.05, margin: float = 0.03):
+        """The highest support whose footprint (grown by `margin`) holds xy and whose top lies at
+        most `max_gap` below z_bottom (and not more than `max_gap` above it: a fused bottom sinks
+        into what it stands on), or None."""
+        best = None
+        for s in self.supports:
+            if abs(s.height - z_bottom) <= max_gap and s.contains(xy, margin):
+                if best is None or s.height > best.height:
+                    best = s
+        return best
+
+    def summary(self) -> dict:
+        roles = {}
+        for c in self.colliders:
+            roles[c.role] = roles.get(c.role, 0) + 1
+        return {"floor_z": self.floor_z, "floor_observed": self.floor_observed, "colliders": roles,
+                "supports": [{"height": s.height, "area_m2": s.area} for s in self.supports],
+                "error_m": self.error_m, "mean_error_m": self.mean_error_m, "coverage": self.coverage,
+                "budget_m": self.budget_m}
+
+
+# ---- footprints --------------------------------------------------------------------------------
+def _hull_2d(points: np.ndarray) -> np.ndarray:
+    """Convex hull polygon [k, 2] (counter-clockwise) of plan-view points, [] when degenerate."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 3:
+        return np.zeros((0, 2))
+    try:
+        h = ConvexHull(pts)
+    except (QhullError, ValueError):
+        return np.zeros((0, 2))
+    return pts[h.vertices]
+
+
+def _polygon_area(poly: np.ndarray) -> float:
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def split_footprint(points: np.ndarray, areas: np.ndarray, *, cell: float, min_area: float,
+                    depth: int = 0) -> list[tuple[np.ndarray, float]]:
+    """Convex plan-view pieces covering a connected surface piece, as (hull polygon [k, 2], observed
+    area). One piece, its convex hull, unless the hull spans an open gap something could pass
+    through (a door in a wall, the inside corner of an L-shaped counter: an unobserved region of
+    radius >= GAP_RADIUS reaching the piece's outline; holes enclosed by observed surface are
+    occlusions and count as surface); then it is cut along a principal axis at the gap's edge and
+    each side handled alike. points [n, 2] (face centres), areas [n] (the area each stands for)."""
+    poly = _hull_2d(points)
+    observed = float(areas.sum())
+    if _polygon_area(poly) <= 0 or observed < min_area:
+        return []
+    radius, gap = _largest_gap(points, poly, cell)
+    if radius < GAP_RADIUS or depth >= MAX_SPLIT_DEPTH:
+        return [(poly, observed)]
+    c = points.mean(axis=0)
+    axes = np.linalg.eigh(np.cov((points - c).T))[1].T
+    best = None
+    for ax in axes:
+        t_pts, t_gap = points @ ax, gap @ ax
+        for cut in (t_gap.min() - 0.5 * cell, t_gap.max() + 0.5 * cell):
+            side = t_pts < cut
+            if side.all() or not side.any():
+                continue
+            worst = max(_largest_gap(points[s], _hull_2d(points[s]), cell)[0] if s.sum() >= 3 else 0.0
+                        for s in (side, ~side))
+            if best is None or worst < best[0]:
+                best = (worst, side)
+    if best is None:
+        return [(poly, observed)]
+    out = []
+    for s in (best[1], ~best[1]):
+        out += split_footprint(points[s], areas[s], cell=cell, min_area=min_area, depth=depth + 1)
+    return out
+
+
+def _occupancy(points: np.ndarray, cell: float):
+    """(grid [I, J] bool, origin [2]): cells of size `cell` holding a point, with pinholes closed and
+    enclosed holes filled (what observed surface surrounds on every side was occluded, not absent)."""
+    from scipy import ndimage
+
+    origin = points.min(axis=0) - cell
+    ij = np.floor((points - origin) / cell).astype(int)
+    grid = np.zeros(tuple(ij.max(axis=0) + 2), bool)
+    grid[ij[:, 0], ij[:, 1]] = True
+    grid |= ndimage.binary_closing(grid, iterations=1)
+    return ndimage.binary_fill_holes(grid), origin
+
+
+def _largest_gap(points: np.ndarray, poly: np.ndarray, cell: float) -> tuple[float, np.ndarray]:
+    """(radius in m, cell centres [k, 2]) of the widest unobserved region inside the hull `poly`."""
+    from matplotlib.path import Path as MplPath
+    from scipy import ndimage
+
+    if len(poly) < 3:
+        return 0.0, np.zeros((0, 2))
+    grid, origin = _occupancy(points, cell)
+    ii, jj = np.meshgrid(np.arange(grid.shape[0]), np.arange(grid.shape[1]), indexing="ij")
+    centres = origin + (np.stack([ii, jj], -1) + 0.5) * cell
+    inside = MplPath(poly).contains_points(centres.reshape(-1, 2), radius=-cell).reshape(grid.shape) | \
+        MplPath(poly[::-1]).contains_points(centres.reshape(-1, 2), radius=-cell).reshape(grid.shape)
+    gap = inside & ~grid
+    if not gap.any():
+        return 0.0, np.zeros((0, 2))
+    dist = ndimage.distance_transform_edt(np.pad(gap, 1)) [1:-1, 1:-1]
+    lab, _ = ndimage.label(gap)
+    k = lab[np.unravel_index(int(dist.argmax()), dist.shape)]
+    return float(dist.max()) * cell, centres[lab == k]
+
+
+def _components_2d(points: np.ndarray, cell: float) -> np.ndarray:
+    """Connected-component label per plan-view point (8-connected on a grid of `cell`, one cell of
+    slack so TSDF pinholes do not split a table top)."""
+    from scipy import ndimage
+
+    ij = np.floor((points - points.min(axis=0)) / cell).astype(int)
+    grid = np.zeros(tuple(ij.max(axis=0) + 1), bool)
+    grid[ij[:, 0], ij[:, 1]] = True
+    grid = ndimage.binary_dilation(grid, iterations=1)
+    lab, _ = ndimage.label(grid, structure=np.ones((3, 3), bool))
+    return lab[ij[:, 0], ij[:, 1]]
+
+
+def _prism(poly: np.ndarray, z_lo: float, z_hi: float):
+    """Convex slab: plan polygon [k, 2] extruded from z_lo to z_hi (trimesh)."""
+    import trimesh
+
+    k = len(poly)
+    pts = np.vstack([np.column_stack([poly, np.full(k, z_lo)]), np.column_stack([poly, np.full(k, z_hi)])])
+    return trimesh.convex.convex_hull(pts)
+
+
+# ---- levels ------------------------------------------------------------------------------------
+def _levels(values: np.ndarray, weights: np.ndarray, tol: float, min_weight: float) -> list[np.ndarray]:
+    """Greedy peaks of a weighted 1-D distribution: index sets of values within `tol` of each peak,
+    heaviest first, while a peak holds at least `min_weight`."""
+    left = np.ones(len(values), bool)
+    out = []
+    while left.any():
+        v, w = values[left], weights[left]
+        bins = max(1, int(np.ceil((v.max() - v.min()) / tol)) + 1)
+        hist, edges = np.histogram(v, bins=bins, range=(v.min() - tol / 2, v.min() - tol / 2 + bins * tol),
+                                   weights=w)
+        k = int(hist.argmax())
+        centre = 0.5 * (edges[k] + edges[k + 1])
+        for _ in range(3):      # settle on the weighted mean of the window
+            sel = np.abs(v - centre) <= tol
+            centre = float(np.average(v[sel], weights=w[sel])) if w[sel].sum() > 0 else centre
+        sel = left & (np.abs(values - centre) <= tol)
+        if weights[sel].sum() < min_weight:
+            break
+        out.append(np.flatnonzero(sel))
+        left &= ~sel
+    return out
+
+
+def _direction_levels(dirs: np.ndarray, weights: np.ndarray, degrees: float, min_weight: float) -> list[np.ndarray]:
+    """Greedy peaks of weighted plan-view directions dirs [n, 2] (no seam at +-180 degrees): index
+    sets within `degrees` of each peak direction, heaviest first, while a peak holds `min_weight`."""
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True).clip(1e-12)
+    probes = np.stack([np.cos(a := np.radians(np.arange(0.0, 360.0, 2.5))), np.sin(a)], 1)
+    cos_tol = np.cos(np.radians(degrees))
+    left = np.ones(len(d), bool)
+    out = []
+    while left.any():
+        mass = ((d[left] @ probes.T >= cos_tol) * weights[left, None]).sum(0)
+        peak = probes[int(mass.argmax())]
+        for _ in range(3):      # settle on the weighted mean direction of the window
+            sel = left & (d @ peak >= cos_tol)
+            if not sel.any():
+                break
+            m = (d[sel] * weights[sel, None]).sum(0)
+            peak = m / max(np.linalg.norm(m), 1e-12)
+        sel = left & (d @ peak >= cos_tol)
+        if weights[sel].sum() < min_weight:
+            break
+        out.append(np.flatnonzero(sel))
+        left &= ~sel
+    return out
+
+
+# ---- the three kinds -----------------------------------------------------------------------------
+def _face_points(triangles: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points [4F, 3], weights [4F]): each face's corners and centre, a quarter of its area each:
+    a footprint's hull reaches the surface's real edge, not the last face centre."""
+    pts = np.concatenate([triangles.reshape(-1, 3), triangles.mean(axis=1)])
+    return pts, np.concatenate([np.repeat(areas / 4, 3), areas / 4])
+
+
+def find_supports(triangles, normals, areas, *, tol: float, cell: float, min_area: float = MIN_SUPPORT_AREA,
+                  facing: float = 1.0):
+    """(supports, face mask) of up-facing surfaces: [Support] heaviest level first, and which faces
+    they took. triangles [F, 3, 3], normals [F, 3], areas [F] of the background's faces. facing -1:
+    the down-facing ones instead (ceilings, undersides of shelves)."""
+    centres = triangles.mean(axis=1)
+    up = facing * normals[:, 2] >= np.cos(np.radians(PLANE_DEGREES))
+    idx = np.flatnonzero(up)
+    supports, used = [], np.zeros(len(centres), bool)
+    if len(idx) == 0:
+        return supports, used
+    for level in _levels(centres[idx, 2], areas[idx], tol, min_area):
+        f = idx[level]
+        z = float(np.average(centres[f, 2], weights=areas[f]))
+        comp = _components_2d(centres[f, :2], cell)
+        for c in np.unique(comp):
+            g = f[comp == c]
+            if areas[g].sum() < min_area:
+                continue
+            used[g] = True
+            pts, wts = _face_points(triangles[g], areas[g])
+            for poly, area in split_footprint(pts[:, :2], wts, cell=cell, min_area=min_area):
+                supports.append(Support(z, poly, area))
+    return supports, used
+
+
+def find_walls(triangles, normals, areas, *, tol: float, cell: float, min_area: float = MIN_WALL_AREA,
+               skip=None):
+    """(walls, face mask): [(normal [3], offset, polygon in the wall's (u, z) [k, 2], u axis [3])]
+    for the vertical surfaces, grouped by direction (within PLANE_DEGREES) and offset (within tol)."""
+    centres = triangles.mean(axis=1)
+    vert = np.abs(normals[:, 2]) <= np.sin(np.radians(PLANE_DEGREES))
+    if skip is not None:
+        vert &= ~skip
+    idx = np.flatnonzero(vert)
+    walls, used = [], np.zeros(len(centres), bool)
+    if len(idx) == 0:
+        return walls, used
+    for d_level in _direction_levels(normals[idx, :2], areas[idx], PLANE_DEGREES, min_area):
+        f = idx[d_level]
+        n = np.average(normals[f], axis=0, weights=areas[f])
+        n[2] = 0.0
+        n /= max(np.linalg.norm(n), 1e-12)
+        off = centres[f] @ n
+        for o_level in _levels(off, areas[f], tol, min_area):
+            g = f[o_level]
+            d = float(np.average(off[o_level], weights=areas[g]))
+            u = np.array([-n[1], n[0], 0.0])
+            uz = np.column_stack([centres[g] @ u, centres[g, 2]])
+            comp = _components_2d(uz, cell)
+            for c in np.unique(comp):
+                h = g[comp == c]
+                if areas[h].sum() < min_area:
+                    continue
+                used[h] = True
+                pts, wts = _face_points(triangles[h], areas[h])
+                for poly, _ in split_footprint(np.column_stack([pts @ u, pts[:, 2]]), wts, cell=cell,
+                                               min_area=min_area):
+                    walls.append((n.copy(), d, poly, u))
+    return walls, used
+
+
+def _wall_slab(n, d, poly, u, thickness):
+    """A wall piece as a convex slab from its observed plane d back to d - thickness along -n."""
+    import trimesh
+
+    corners = [p[0] * u + np.array([0, 0, p[1]]) for p in poly]
+    front = np.array([c + (d - c @ n) * n for c in corners])
+    return trimesh.convex.convex_hull(np.vstack([front, front - thickness * n]))
+
+
+def clutter_colliders(mesh, faces: np.ndarray, *, budget: float, thickness: float,
+                      min_area: float = MIN_CLUTTER_AREA, max_parts: int = MAX_CLUTTER_PARTS) -> list:
+    """Convex pieces for the background faces `faces` (indices) that no support or wall explains:
+    per connected piece (largest first), the hull of its points and their copy `thickness` behind
+    the surface, bisected along its principal axis while the surface lies more than `budget` inside
+    the hull (95th percentile)."""
+    import trimesh
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if len(faces) == 0:
+        return []
+    keep = np.zeros(len(mesh.faces), bool)
+    keep[faces] = True
+    adj = np.asarray(mesh.face_adjacency)
+    adj = adj[keep[adj[:, 0]] & keep[adj[:, 1]]]
+    n = len(mesh.faces)
+    graph = coo_matrix((np.ones(len(adj)), (adj[:, 0], adj[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    tri = np.asarray(mesh.triangles, np.float64)
+    fn = np.asarray(mesh.face_normals, np.float64)
+    fa = np.asarray(mesh.area_faces, np.float64)
+    labels, inverse = np.unique(label[faces], return_inverse=True)
+    comp_area = np.bincount(inverse, weights=fa[faces])
+    out = []
+
+    def add(points, normal, depth):
+        hull = trimesh.convex.convex_hull(np.vstack([points, points - thickness * normal]))
+        probe = points if len(points) <= 4000 else points[np.linspace(0, len(points) - 1, 4000).astype(int)]
+        err = _distance_to_convex(hull, probe)
+        if float(np.percentile(err, 95)) <= budget or depth >= MAX_SPLIT_DEPTH or len(points) < 16:
+            out.append(hull)
+            return
+        c = points.mean(axis=0)
+        axis = np.linalg.eigh(np.cov((points - c).T))[1][:, -1]
+        side = (points - c) @ axis > 0
+        for s in (side, ~side):
+            if s.sum() >= 4 and len(out) < max_parts:
+                add(points[s], normal, depth + 1)
+
+    for k in np.argsort(-comp_area):
+        if comp_area[k] < min_area or len(out) >= max_parts:
+            break
+        f = faces[inverse == k]
+        nrm = (fn[f] * fa[f, None]).sum(0)
+        nrm = nrm / np.linalg.norm(nrm) if np.linalg.norm(nrm) > 1e-9 else np.array([0.0, 0.0, 1.0])
+        add(np.concatenate([tri[f].reshape(-1, 3), tri[f].mean(axis=1)]), nrm, 0)
+    return out[:max_parts]
+
+
+def _distance_to_colliders(points: np.ndarray, colliders, floor_z: float | None, reach: float = 0.1) -> np.ndarray:
+    """Distance [n] of each point to the nearest collider surface or the floor plane (points farther
+    than `reach` from every collider's box count as far)."""
+    d = np.full(len(points), np.inf) if floor_z is None else np.abs(points[:, 2] - floor_z)
+    for c in colliders:
+        lo, hi = np.asarray(c.mesh.bounds)
+        near = np.all((points > lo - reach) & (points < hi + reach), axis=1)
+        if near.any():
+            d[near] = np.minimum(d[near], _distance_to_convex(c.mesh, points[near]))
+    return d
+
+
+def _distance_to_convex(hull, points: np.ndarray) -> np.ndarray:
+    """Distance [n] of points to a convex mesh's surface: exact inside; outside, the distance to the
+    farthest face plane in front of the point (a lower bound, exact over a face)."""
+    n = np.asarray(hull.face_normals, np.float64)
+    d = np.einsum("ij,ij->i", n, np.asarray(hull.triangles, np.float64)[:, 0])
+    signed = points @ n.T - d[None, :]          # > 0 in front of a face
+    outside = signed.max(axis=1)
+    return np.where(outside > 0, outside, -outside)
+
+
+def _scatter(mask_of_ok: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    out = np.zeros(len(ok), bool)
+    out[np.flatnonzero(ok)[mask_of_ok]] = True
+    return out
+
+
+# ---- the environment -------------------------------------------------------------------------------
+def static_environment(background, *, voxel: float = 0.01, budget: float | None = None,
+                       thickness: float = THICKNESS, seed: int = 0) -> StaticEnvironment:
+    """Colliders of the static world from the fused background surface (trimesh, world Z-up, face
+    normals towards the observed side). voxel: the fusion's voxel (m); budget: collider error budget
+    (m), default 2 voxels but not under 1.5 cm."""
+    budget = max(0.015, 2.0 * voxel) if budget is None else float(budget)
+    if background is None or len(getattr(background, "faces", [])) == 0:
+        return StaticEnvironment(None, False, budget_m=budget)
+    T = np.asarray(background.triangles, np.float64)
+    C = T.mean(axis=1)
+    N = np.asarray(background.face_normals, np.float64)
+    A = np.asarray(background.area_faces, np.float64)
+    ok = np.isfinite(C).all(1) & np.isfinite(N).all(1) & (A > 0)
+    tol = max(0.01, 1.5 * voxel)
+    # plan-view grid: fine enough for a 20 cm gap, never finer than the mesh's own edges (a cell
+    # with no face centre in it would read as a hole)
+    cell = max(0.02, 2.0 * voxel, float(np.median(background.edges_unique_length)))
+    supports, s_used = find_supports(T[ok], N[ok], A[ok], tol=tol, cell=cell)
+    ceilings, c_used = find_supports(T[ok], N[ok], A[ok], tol=tol, cell=cell, facing=-1.0)
+    walls, w_used = find_walls(T[ok], N[ok], A[ok], tol=tol, cell=cell, skip=s_used | c_used)
+    s_used, w_used = _scatter(s_used | c_used, ok), _scatter(w_used, ok)
+
+    # floor: the lowest support holding a real share of the supported area, with (almost) nothing
+    # observed below it; a desk seen without the floor has walls or legs going on down
+    floor_z, observed = None, False
+    if supports:
+        total = sum(s.area for s in supports)
+        for s in sorted((s for s in supports if s.area >= FLOOR_SHARE * total), key=lambda s: s.height):
+            below = float(A[ok & (C[:, 2] < s.height - FLOOR_CLEARANCE)].sum())
+            if below <= MAX_AREA_BELOW_FLOOR * float(A[ok].sum()):
+                floor_z, observed = float(s.height), True
+            break
+    if floor_z is None:
+        # no floor seen (a close-up of a table): a safety plane under everything, not a surface
+        floor_z = float(T[ok][:, :, 2].min()) - FLOOR_CLEARANCE
+
+    colliders = []
+    for k, s in enumerate(sorted(supports, key=lambda s: (s.height, -s.area))):
+        if observed and abs(s.height - floor_z) <= tol:
+            continue                    # the floor plane is the floor's collider
+        colliders.append(StaticCollider(f"support_{k}", "support", _prism(s.polygon, s.height - thickness, s.height),
+                                        s.height, s.area))
+    for k, c in enumerate(sorted(ceilings, key=lambda s: (s.height, -s.area))):
+        colliders.append(StaticCollider(f"ceiling_{k}", "ceiling", _prism(c.polygon, c.height, c.height + thickness),
+                                        None, c.area))
+    for k, (n, d, poly, u) in enumerate(walls):
+        colliders.append(StaticCollider(f"wall_{k}", "wall", _wall_slab(n, d, poly, u, thickness), None,
+                                        _polygon_area(poly)))
+    rest = np.flatnonzero(ok & ~s_used & ~w_used & (C[:, 2] > floor_z + 0.5 * tol))
+    # a fused surface rounds every corner where two planes meet: what lies within the budget of a
+    # collider already made is explained by it
+    rest = rest[_distance_to_colliders(C[rest], colliders, floor_z if observed else None) > budget]
+    for k, hull in enumerate(clutter_colliders(background, rest, budget=budget, thickness=thickness)):
+        colliders.append(StaticCollider(f"clutter_{k}", "clutter", hull, None, float(hull.area)))
+    env = StaticEnvironment(floor_z, observed, colliders, supports, budget_m=budget)
+    measure_error(env, background, seed=seed)
+    return env
+
+
+def measure_error(env: StaticEnvironment, background, *, samples: int = 20000, seed: int = 0) -> None:
+    """Fill env.error_m / mean_error_m / coverage: distances of area-sampled background surface
+    points to the nearest collider surface (the floor plane included)."""
+    import trimesh
+
+    if background is None or len(background.faces) == 0:
+        return
+    pts, _ = trimesh.sample.sample_surface(background, samples, seed=seed)
+    d = np.minimum(_distance_to_colliders(pts, env.colliders, env.floor_z), 10.0)
+    env.error_m = float(np.percentile(d, 95))
+    env.mean_error_m = float(d.mean())
+    env.coverage = float(np.mean(d <= env.budget_m))

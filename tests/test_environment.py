@@ -1,0 +1,174 @@
+"""The static world's colliders from an observed background surface (issue #16 §1).
+
+The background is built the way a fused capture sees it: open surfaces with normals towards free
+space, a table top with a hole where a mug stood (occluded), a wall with a door opening, an unlabelled
+box on the floor, table legs. Then the colliders are loaded into MuJoCo and things are dropped on them.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from psimap.exporters.environment import Support, static_environment
+
+
+def rect(origin, u, v, step=0.05, hole=None):
+    """An open grid surface origin + a u + b v (a, b in [0, 1]), normal u x v. hole: (a0, a1, b0, b1)
+    in the same unit square, left out."""
+    origin, u, v = (np.asarray(x, np.float64) for x in (origin, u, v))
+    nu = max(2, int(np.ceil(np.linalg.norm(u) / step)) + 1)
+    nv = max(2, int(np.ceil(np.linalg.norm(v) / step)) + 1)
+    a, b = np.meshgrid(np.linspace(0, 1, nu), np.linspace(0, 1, nv), indexing="ij")
+    verts = origin + a.reshape(-1, 1) * u + b.reshape(-1, 1) * v
+    faces = []
+    for i in range(nu - 1):
+        for j in range(nv - 1):
+            ca, cb = (a[i, j] + a[i + 1, j]) / 2, (b[i, j] + b[i, j + 1]) / 2
+            if hole and hole[0] < ca < hole[1] and hole[2] < cb < hole[3]:
+                continue
+            p, q, r, s = i * nv + j, (i + 1) * nv + j, (i + 1) * nv + j + 1, i * nv + j + 1
+            faces += [[p, q, r], [p, r, s]]
+    return trimesh.Trimesh(verts, np.array(faces), process=False)
+
+
+def box_surface(lo, hi, step=0.05, bottom=False):
+    """The outward faces of an axis-aligned box as seen by cameras (no bottom)."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    d = hi - lo
+    ex, ey, ez = np.eye(3) * d
+    parts = [rect([lo[0], lo[1], hi[2]], ex, ey, step),                  # top, normal +z
+             rect(lo, ez, ey, step), rect([hi[0], lo[1], lo[2]], ey, ez, step),   # -x, +x
+             rect(lo, ex, ez, step), rect([lo[0], hi[1], lo[2]], ez, ex, step)]   # -y, +y
+    if bottom:
+        parts.append(rect(lo, ey, ex, step))
+    return trimesh.util.concatenate(parts)
+
+
+W, D, H = 4.0, 3.0, 2.5
+TABLE = (np.array([0.2, -0.6, 0.0]), np.array([1.4, 0.2, 0.75]))        # a stuff-class desk
+CLUTTER = (np.array([-1.2, 0.5, 0.0]), np.array([-0.8, 0.9, 0.3]))      # an unlabelled box
+
+
+def room_background():
+    lo, hi = TABLE
+    parts = [
+        rect([-W / 2, -D / 2, 0], [W, 0, 0], [0, D, 0], hole=(0.45, 0.75, 0.25, 0.55)),  # floor, furniture shadow
+        rect([-W / 2, -D / 2, 0], [0, D, 0], [0, 0, H]),                    # wall x = -W/2, normal +x
+        rect([W / 2, -D / 2, 0], [0, 0, H], [0, D, 0]),                     # wall x = +W/2, normal -x
+        rect([-W / 2, D / 2, 0], [0, 0, H], [W, 0, 0],                      # wall y = +D/2 with a door
+             hole=(0.0, 0.85, 0.6, 0.8)),
+        # the desk top, a hole where a mug stood on it; its front edge; four legs (thin boxes)
+        rect([lo[0], lo[1], hi[2]], [hi[0] - lo[0], 0, 0], [0, hi[1] - lo[1], 0], step=0.04,
+             hole=(0.4, 0.55, 0.3, 0.55)),
+        *[box_surface([x, y, 0], [x + 0.05, y + 0.05, hi[2] - 0.01], step=0.05)
+          for x in (lo[0], hi[0] - 0.05) for y in (lo[1], hi[1] - 0.05)],
+        box_surface(*CLUTTER, step=0.05),
+    ]
+    return trimesh.util.concatenate(parts)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return static_environment(room_background(), voxel=0.01)
+
+
+def test_floor_supports_walls_found(env):
+    assert env.floor_observed and abs(env.floor_z) < 2e-3
+    desk = [s for s in env.supports if abs(s.height - 0.75) < 0.01]
+    assert len(desk) == 1, [(s.height, s.area) for s in env.supports]
+    # the mug's hole is filled: the desk collider covers the whole top
+    area = desk[0].polygon
+    from psimap.exporters.environment import _polygon_area
+
+    assert abs(_polygon_area(area) - 1.2 * 0.8) < 0.06
+    assert desk[0].contains([0.8, -0.2]) and not desk[0].contains([-0.5, -0.2])
+    box_top = [s for s in env.supports if abs(s.height - 0.3) < 0.01]
+    assert len(box_top) == 1 and box_top[0].contains([-1.0, 0.7])
+    roles = env.summary()["colliders"]
+    assert roles["support"] == 2 and roles["wall"] >= 4 and roles["clutter"] >= 1
+    # every collider is a convex solid
+    assert all(c.mesh.is_watertight and c.mesh.is_convex for c in env.colliders)
+
+
+def test_door_opening_stays_open(env):
+    """No wall collider may block the door: a point in the doorway is inside none of them."""
+    door = np.array([[0.8, D / 2 - 0.01, 1.0], [0.5, D / 2 - 0.02, 1.9], [1.1, D / 2 - 0.03, 0.1]])
+    for c in env.colliders:
+        if c.role == "wall":
+            assert not c.mesh.contains(door).any(), c.name
+
+
+def test_colliders_follow_the_surface_within_budget(env):
+    assert env.error_m <= env.budget_m, env.summary()
+    assert env.coverage >= 0.95
+    # and nothing fills the free space above the desk where objects stand
+    above = np.array([[0.8, -0.2, 0.80], [0.5, -0.4, 0.9], [0.0, 0.0, 1.2]])
+    for c in env.colliders:
+        assert not c.mesh.contains(above).any(), c.name
+
+
+def test_support_under(env):
+    s = env.support_under([0.8, -0.2], 0.745)               # a mug's fused bottom sank 5 mm in
+    assert s is not None and abs(s.height - 0.75) < 0.01
+    assert env.support_under([0.8, -0.2], 0.5) is None       # half way down: not resting on it
+    assert env.support_under([1.43, -0.2], 0.75) is not None  # over the edge by 3 cm: grown margin
+
+
+def test_no_floor_seen_gives_a_safety_plane():
+    lo, hi = TABLE
+    top = rect([lo[0], lo[1], hi[2]], [hi[0] - lo[0], 0, 0], [0, hi[1] - lo[1], 0])
+    wall = rect([-W / 2, D / 2, 0.5], [0, 0, 1.5], [W, 0, 0])
+    env = static_environment(trimesh.util.concatenate([top, wall]), voxel=0.01)
+    # the desk is the only support: it is not the floor, and the safety plane is under everything
+    assert not env.floor_observed and env.floor_z <= 0.5 + 1e-9
+    assert any(c.role == "support" and abs(c.height - 0.75) < 0.01 for c in env.colliders)
+
+
+def test_empty_background():
+    env = static_environment(None)
+    assert env.floor_z is None and env.colliders == []
+    assert not Support(0.0, np.zeros((0, 2)), 0.0).contains([0, 0])
+
+
+def _mjcf(env, bodies):
+    """A MuJoCo model of the environment's colliders plus free boxes {name: (pos, half size)}."""
+    import mujoco
+
+    spec = mujoco.MjSpec()
+    spec.option.timestep = 0.002
+    w = spec.worldbody
+    w.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], pos=[0, 0, env.floor_z])
+    for c in env.colliders:
+        m = spec.add_mesh(name=c.name)
+        m.uservert = np.asarray(c.mesh.vertices, np.float64).ravel().tolist()
+        m.userface = np.asarray(c.mesh.faces, np.int32).ravel().tolist()
+        w.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=c.name)
+    for name, (pos, half) in bodies.items():
+        b = w.add_body(name=name, pos=pos)
+        b.add_freejoint()
+        b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=half, mass=0.2, friction=[0.7, 0.005, 0.0001])
+    model = spec.compile()
+    return model, mujoco.MjData(model)
+
+
+def test_boxes_rest_on_the_stuff_desk_and_stop_at_the_wall(env):
+    """A box put on the desk stays there (the whole reason for this module); a box shoved towards
+    the wall stops at it instead of passing through; a box on the unlabelled clutter stays on it."""
+    import mujoco
+
+    bodies = {"on_desk": ([0.8, -0.2, 0.75 + 0.04 + 0.002], [0.05, 0.04, 0.04]),
+              "on_clutter": ([-1.0, 0.7, 0.3 + 0.03 + 0.002], [0.04, 0.04, 0.03]),
+              "to_wall": ([1.5, 0.0, 0.05 + 0.002], [0.05, 0.05, 0.05])}
+    model, data = _mjcf(env, bodies)
+    wall_box = model.body("to_wall").id
+    data.qvel[model.body_dofadr[wall_box]:model.body_dofadr[wall_box] + 3] = [3.0, 0.0, 0.0]
+    mujoco.mj_forward(model, data)
+    start = {n: data.xpos[model.body(n).id].copy() for n in bodies}
+    for _ in range(1000):                                       # 2 s
+        mujoco.mj_step(model, data)
+    for n in ("on_desk", "on_clutter"):
+        moved = np.linalg.norm(data.xpos[model.body(n).id] - start[n])
+        assert moved < 0.01, (n, moved)
+    x = data.xpos[wall_box][0]
+    assert 1.8 < x < W / 2 - 0.05 + 0.005, x                    # reached the wall, did not pass it
