@@ -129,7 +129,7 @@ def write_section(key: str, title: str, body: str, *, headlines=(), command: str
         preamble, sections = parse(old) if old is not None else (PREAMBLE, {})
         findings = _findings(sections.get(key, ""))
         if findings and FINDINGS_BEGIN not in body:      # dated notes outlive the figures they sit under
-            text = text[: -len(END)] + findings + "\n" + END
+            text = with_findings(text, findings)
         sections[key] = text
         _write(results, compose(preamble, sections), old is not None)
         if plot is None:
@@ -147,7 +147,8 @@ def render_section(key: str, title: str, body: str, *, headlines=(), measured: s
     if plot is not None:
         rel = Path(plot).resolve().relative_to(results.parent.resolve()).as_posix()
         lines += ["", f"![{title}]({rel})"]
-    return "\n".join(lines) + "\n" + END
+    # blank line before the marker: a table's last row must not run into it
+    return "\n".join(lines) + "\n\n" + END
 
 
 def run_stamp(command: str | None, when: str) -> str:
@@ -229,6 +230,11 @@ def refresh(results: Path = RESULTS) -> None:
             _write(results, new, True)
 
 
+def with_findings(section: str, block: str) -> str:
+    """`section` with a findings block (markers included) as its last part, before the end marker."""
+    return section[: -len(END)].rstrip("\n") + "\n\n" + block.strip() + "\n\n" + END
+
+
 def _findings(section: str) -> str:
     """The section's findings block with its markers, or ''."""
     lines = section.splitlines()
@@ -236,7 +242,7 @@ def _findings(section: str) -> str:
     if not starts:
         return ""
     end = next(i for i in range(starts[0], len(lines)) if lines[i].strip() == FINDINGS_END)
-    return "\n" + "\n".join(lines[starts[0]:end + 1])
+    return "\n".join(lines[starts[0]:end + 1])
 
 
 def _write(results: Path, text: str, existed: bool) -> None:
