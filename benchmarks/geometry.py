@@ -226,6 +226,7 @@ def plot(rows, curve_data):
                            label=method if j == 0 else None)
     ax.set(xscale="log", xlabel="CPU s (training + meshing; raw TSDF: fusion)", ylabel="Chamfer-L1 (cm)",
            title="speed vs error, per scene and seed")
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())     # minor labels overlap on a log axis
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     for ax, (key, xlabel) in zip(axes[0, 1:], curves):
