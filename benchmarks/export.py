@@ -183,7 +183,7 @@ def collider_table(tmp: Path):
                   "no preprocessing, thresholds 0.3 / 0.15 / 0.08 while a per-object budget (4 s; 60 s for "
                   f"these rows) lasts. Load average {os.getloadavg()[0]:.1f} (shared 2-core machine).",
                   headlines=[(f"{name}: collider fit error, " + " / ".join(r[0] for r in rows),
-                              " / ".join(f"{r[3]:.1f}" for r in rows) + " mm")])
+                              " / ".join(f"{r[3]:.3g}" for r in rows) + " mm")])
 
 
 def scene_table(tmp: Path):
