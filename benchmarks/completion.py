@@ -8,7 +8,8 @@ Compared in one run: no completion (the partial scan), the convex hull of the pa
 Metrics as the paper's completion table: CD-O / F-score-O (object vs its complete GT mesh, F at
 1 cm), CD-S / F-score-S (all objects of a scene together), IoU-B (axis-aligned box IoU), Col-O /
 Col-S (share of objects whose result intersects another object's GT / the table or wall by more
-than 0.1 cm³ and 1 % of its volume), time per object. Writes a PNG beside RESULTS.md.
+than 0.1 cm³ and 1 % of its volume), time per object. Writes its section of RESULTS.md and its
+plot (benchmarks/plots/completion.png); --quick (synthetic scene only) and --no-append print only.
 
     .venv/bin/python benchmarks/completion.py [--quick]
 """
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 from psimap.camera import look_at
 from psimap.data.synthetic_shapes import solid_mug
 
@@ -217,7 +218,7 @@ def run_scene(tag: str, objects: dict, n_views: int, rng, log):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="synthetic scene only")
+    ap.add_argument("--quick", action="store_true", help="synthetic scene only; RESULTS.md untouched")
     ap.add_argument("--views", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-append", action="store_true", help="print only, do not touch RESULTS.md")
@@ -248,22 +249,27 @@ def main(argv=None) -> int:
                               "wall s", "CPU s"],
                              [list(x) for x in all_rows if x[1] == "ours"])
     md = markdown_table(header, table)
-    _plot(all_rows, Path(__file__).with_name("completion.png"))
     notes = (f"{args.views} views, 320x240, 1 mm depth noise, voxel {VOXEL * 1000:.0f} mm, F at "
              f"{F_THRESHOLD * 100:.0f} cm. none = partial scan (open: no volume, so never counted as "
              "colliding), hull = convex hull of the partial scan. Neighbours are passed as the other "
              "objects' partial scans, background = table + wall. Time = complete() per object on a "
-             "2-core CPU shared with other jobs (wall clock and process CPU time). Plot: benchmarks/completion.png.\n\nOurs per object:\n\n" + per_obj)
-    if args.no_append:
+             "2-core CPU shared with other jobs (wall clock and process CPU time).\n\nOurs per object:\n\n" + per_obj)
+    if args.no_append or args.quick:
         print(md)
         print(notes)
-    else:
-        append_results("Completion (issue 8): partial scans vs convex hull vs psimap.completion", md, notes,
-                       command="python benchmarks/completion.py" + (" --quick" if args.quick else ""))
+        return 0
+    heads = []
+    for tag, _ in scenes:
+        ours, hull = (next(r for r in table if r[0] == tag and r[1] == m) for m in ("ours", "hull"))
+        heads.append((f"{tag}: F-score-O @ 1 cm, ours vs convex hull; CPU s per object",
+                      f"{ours[5]:.4f} vs {hull[5]:.4f}; {ours[10]:.2f} s"))
+    write_section("completion", "Completion (issue 8): partial scans vs convex hull vs psimap.completion",
+                  md + "\n\n" + notes, headlines=heads, plot=save_plot(_plot(all_rows), "completion"))
     return 0
 
 
-def _plot(rows, path):
+def _plot(rows):
+    """F-score-O per object and method, as a bar chart (the figure, not yet saved)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -279,8 +285,7 @@ def _plot(rows, path):
     ax.set_ylabel(f"F-score-O @ {F_THRESHOLD * 100:.0f} cm")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    return fig
 
 
 if __name__ == "__main__":

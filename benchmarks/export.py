@@ -2,11 +2,15 @@
 
 1. YCB scans (../shared/data/ycb, skipped when absent): estimated vs real mass, faces, decimation
    error, collider, settle drift and penetration of all six in one MuJoCo scene.
-2. Decimation budget vs faces vs Hausdorff error vs MuJoCo sim speed (plot: bench_out/export_decimation.png).
+2. Decimation budget vs faces vs Hausdorff error vs MuJoCo sim speed (with a plot).
 3. Collider kind vs fit error vs hull count vs penetration after 2 s vs sim speed.
-4. Total export time of a 10-object synthetic checkpoint (target <= 60 s on this machine), per step.
+4. Total export time of a 10-object synthetic checkpoint (target <= 60 s on this machine), per step
+   (with a plot).
 5. `trained` (only when named): the simulation check on a trained checkpoint.
-Tables are appended to benchmarks/RESULTS.md.
+Each writes its own section of benchmarks/RESULTS.md (export/ycb, export/decimation, ...), so
+`python benchmarks/export.py scene` replaces only the scene's figures.
+
+    python benchmarks/export.py [ycb|decimation|collider|scene|trained ...]   (default: the first four)
 """
 from __future__ import annotations
 
@@ -20,11 +24,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 YCB = ROOT.parent / "shared" / "data" / "ycb"
-OUT = ROOT / "bench_out"
 NAMES = ["banana", "bowl", "cracker_box", "mug", "mustard_bottle", "power_drill"]
 
 
@@ -62,8 +65,11 @@ def ycb_table(tmp: Path):
              "the YCB banana is a hollow plastic replica and the YCB mug is plastic, while the table "
              "assumes real fruit and ceramic tableware (over-estimates); the bowl's scanned wall encloses "
              "less material than the real bowl (under-estimate even at ceramic density).")
-    append_results("Export: YCB scans, mass vs real, decimation, collider, settle", markdown_table(header, rows),
-                   notes, "python benchmarks/export.py")
+    write_section("export/ycb", "Export: YCB scans, mass vs real, decimation, collider, settle",
+                  markdown_table(header, rows) + "\n\n" + notes,
+                  headlines=[("six YCB scans in one MJCF: settle check; median |mass error|",
+                              f"{'passed' if chk['passed'] else 'FAILED'}, max drift {chk['max_drift'] * 1000:.2f} mm; "
+                              f"{np.median(errs):.0f} %")])
 
 
 def decimation_table(tmp: Path):
@@ -91,11 +97,6 @@ def decimation_table(tmp: Path):
                      r["check"]["max_drift"] * 1000, dt])
     header = ["budget mm", "faces in", "faces out", "Hausdorff mm", "mean mm", "sim s / wall s",
               "settle drift mm", "asset steps s"]
-    append_results(f"Export: decimation budget vs error vs sim speed ({name})", markdown_table(header, rows),
-                   "Faces chosen by bisection on the error budget (symmetric Hausdorff on 10k samples + "
-                   "vertices); sim speed = 2 s of MuJoCo with the visual mesh at that face count. "
-                   f"Plot: bench_out/export_decimation.png. Load average {os.getloadavg()[0]:.1f}.",
-                   "python benchmarks/export.py decimation")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -113,8 +114,15 @@ def decimation_table(tmp: Path):
     ax.set_title(name)
     fig.legend(loc="lower left")
     fig.tight_layout()
-    OUT.mkdir(exist_ok=True)
-    fig.savefig(OUT / "export_decimation.png", dpi=120)
+    mm1 = next(r for r in rows if r[0] == 1)
+    write_section("export/decimation", f"Export: decimation budget vs error vs sim speed ({name})",
+                  markdown_table(header, rows) + "\n\n" +
+                  "Faces chosen by bisection on the error budget (symmetric Hausdorff on 10k samples + "
+                  "vertices); sim speed = 2 s of MuJoCo with the visual mesh at that face count. "
+                  f"Load average {os.getloadavg()[0]:.1f}.",
+                  headlines=[(f"{name}: faces kept at a 1 mm error budget",
+                              f"{mm1[2]} of {mm1[1]} (measured Hausdorff {mm1[3]:.2f} mm)")],
+                  plot=save_plot(fig, "export/decimation"))
 
 
 def collider_table(tmp: Path):
@@ -166,15 +174,16 @@ def collider_table(tmp: Path):
                      r["check"]["max_drift"] * 1000, r["timings"]["sim_seconds_per_wall_second"], dt])
     header = ["collider", "kind", "hulls", "fit error mm", "penetration after 2 s mm", "settle drift mm",
               "sim s / wall s", "build s"]
-    append_results(f"Export: collider kind vs fit error vs penetration vs sim speed ({name})",
-                   markdown_table(header, rows),
-                   "Fit error = symmetric Hausdorff between the collider's surface and the mesh (a hull fills "
+    write_section("export/collider", f"Export: collider kind vs fit error vs penetration vs sim speed ({name})",
+                  markdown_table(header, rows) + "\n\n" +
+                  "Fit error = symmetric Hausdorff between the collider's surface and the mesh (a hull fills "
                    "the mug's cavity, hence its cm error); every hull <= 64 vertices. The exporter picks the "
                    "cheapest row within its tolerance (3 % of the diagonal, >= 3 mm), else the best "
-                   "decomposition; CoACD runs on a <= 600-face copy with resolution 300, 12 MCTS iterations, "
-                   "no preprocessing, thresholds 0.3 / 0.15 / 0.08 while a per-object budget (4 s; 60 s for "
-                   f"these rows) lasts. Load average {os.getloadavg()[0]:.1f} (shared 2-core machine).",
-                   "python benchmarks/export.py collider")
+                  "decomposition; CoACD runs on a <= 600-face copy with resolution 300, 12 MCTS iterations, "
+                  "no preprocessing, thresholds 0.3 / 0.15 / 0.08 while a per-object budget (4 s; 60 s for "
+                  f"these rows) lasts. Load average {os.getloadavg()[0]:.1f} (shared 2-core machine).",
+                  headlines=[(f"{name}: collider fit error, " + " / ".join(r[0] for r in rows),
+                              " / ".join(f"{r[3]:.3g}" for r in rows) + " mm")])
 
 
 def scene_table(tmp: Path):
@@ -238,20 +247,44 @@ def scene_table(tmp: Path):
         step_rows.append([completion] + [tm.get(k, 0.0) for k in STEPS] + [total])
     header = ["completion", "objects", "skipped", "colliders", "worst collider err mm", "sim check",
               "initial penetration mm", "nudged", "max drift mm", "unsupported", "total s", "CPU s"]
-    append_results("Export: 10-object synthetic checkpoint, all formats", markdown_table(header, rows),
-                   f"Checkpoint = surfels sampled on GT meshes (scene_from_meshes), {n} cameras {w}x{h}. "
-                   f"Target: total <= 60 s on this machine (2 cores shared with other jobs: load average "
-                   f"{load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end, so wall times are noisy; CPU s = "
-                   "process CPU time, all threads, what the export itself used). Objects are closed as voxel solids "
-                   "(exporters.solidify), made consistent (floor cut, overlaps), and get the cheapest collider "
-                   "within tolerance (primitive -> hull -> CoACD with a 4 s per-object budget). Check failures: "
-                   + "; ".join(f"{k}: {v}" for k, v in fails.items()) + ".",
-                   "python benchmarks/export.py scene")
-    append_results("Export: 10-object synthetic checkpoint, time per step (s, summed over objects)",
-                   markdown_table(["completion"] + STEPS + ["total s"], step_rows),
-                   "From timings.json of the same runs. instance_meshes = renders + per-instance TSDF + support "
-                   "cut; repair includes the voxel solid; usd includes validation; check = the MuJoCo check.",
-                   "python benchmarks/export.py scene")
+    body = (markdown_table(header, rows) + "\n\n"
+            f"Checkpoint = surfels sampled on GT meshes (scene_from_meshes), {n} cameras {w}x{h}. "
+            f"Target: total <= 60 s on this machine (2 cores shared with other jobs: load average "
+            f"{load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end, so wall times are noisy; CPU s = "
+            "process CPU time, all threads, what the export itself used). Objects are closed as voxel solids "
+            "(exporters.solidify), made consistent (floor cut, overlaps), and get the cheapest collider "
+            "within tolerance (primitive -> hull -> CoACD with a 4 s per-object budget). Check failures: "
+            + "; ".join(f"{k}: {v}" for k, v in fails.items()) + ".\n\n"
+            "Time per step (s, summed over objects), from timings.json of the same runs. instance_meshes = "
+            "renders + per-instance TSDF + support cut; repair includes the voxel solid; usd includes "
+            "validation; check = the MuJoCo check:\n\n"
+            + markdown_table(["completion"] + STEPS + ["total s"], step_rows))
+    write_section("export/scene", "Export: 10-object synthetic checkpoint, all formats", body,
+                  headlines=[("10-object export, completion none / auto: total wall (target <= 60 s); check",
+                              " / ".join(f"{r[10]:.1f} s (CPU {r[11]:.1f} s)" for r in rows) + "; "
+                              + " / ".join("passed" if r[5] else "FAILED" for r in rows))],
+                  plot=save_plot(plot_steps(step_rows), "export/scene"))
+
+
+def plot_steps(step_rows):
+    """Seconds per export step, stacked, one bar per completion mode (the figure, not yet saved)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    for i, row in enumerate(step_rows):
+        left = 0.0
+        for k, (step, sec) in enumerate(zip(STEPS, row[1:])):
+            ax.barh(i, sec, left=left, color=plt.cm.tab20(k), label=step.removesuffix("_s") if i == 0 else None)
+            left += sec
+    ax.set_yticks(range(len(step_rows)), [f"completion {r[0]}" for r in step_rows])
+    ax.set_xlabel("wall s, summed over objects")
+    ax.set_title("10-object export: time per step")
+    ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+    return fig
 
 
 STEPS = ["instance_meshes_s", "repair_s", "completion_s", "consistency_s", "decimation_s", "collision_s",
@@ -293,22 +326,30 @@ def trained_table(tmp: Path):
         rows[-1].append(f"static: {static}; skipped: {skipped}; failures: {fails}")
     header = ["completion", "objects", "skipped", "sim check", "initial penetration mm", "nudged", "max nudge mm",
               "max drift mm", "unsupported", "fell", "total s", "notes"]
-    append_results("Export: trained checkpoint (psimap generate + psimap train, seed 0) through the MuJoCo check",
-                   markdown_table(header, rows),
-                   "Initial penetration is after the nudges the check applies and reports; static objects "
+    write_section("export/trained",
+                  "Export: trained checkpoint (psimap generate + psimap train, seed 0) through the MuJoCo check",
+                  markdown_table(header, rows) + "\n\n" +
+                  "Initial penetration is after the nudges the check applies and reports; static objects "
                    "(furniture classes, or fewer surfels than exporters.pipeline.MIN_RIGID_SURFELS) are supports, "
-                   f"not movers. Load average {load:.1f} on 2 shared cores: times are noisy.",
-                   cmd)
+                  f"not movers. Load average {load:.1f} on 2 shared cores: times are noisy.",
+                  headlines=[("trained demo checkpoint, completion none / auto: check; total wall",
+                              " / ".join("passed" if r[3] else "FAILED" for r in rows) + "; "
+                              + " / ".join(f"{r[10]:.1f}" for r in rows) + " s")],
+                  command=cmd)
 
 
 def main():
     only = sys.argv[1:]     # e.g. `python benchmarks/export.py scene`: only those tables
+    tables = {"ycb": ycb_table, "decimation": decimation_table, "collider": collider_table,
+              "scene": scene_table, "trained": trained_table}
+    unknown = [n for n in only if n not in tables]
+    if unknown:
+        sys.exit(f"error: unknown table {', '.join(unknown)}; choose from {', '.join(tables)}")
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         if only:
             for name in only:
-                {"ycb": ycb_table, "decimation": decimation_table, "collider": collider_table,
-                 "scene": scene_table, "trained": trained_table}[name](tmp)
+                tables[name](tmp)
             return
         if YCB.is_dir():
             ycb_table(tmp)

@@ -1,7 +1,7 @@
 """Synthetic scene generator benchmark: time to write a scene at three image sizes (cold CLI run
 with imports, and warm in-process), beside the curved-surface error the tessellation budget costs.
 
-Run: .venv/bin/python benchmarks/generate.py   (appends to benchmarks/RESULTS.md, plot in bench_out/)
+Run: .venv/bin/python benchmarks/generate.py   (its section of benchmarks/RESULTS.md, plot in benchmarks/plots/)
 Target (issue 2): 60 frames at 160x120 in <= 10 s on 2 cores.
 """
 from __future__ import annotations
@@ -16,10 +16,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "bench_out"
 SIZES = [(60, 80, 60), (60, 160, 120), (60, 320, 240)]
 SEEDS = (0, 1)
 
@@ -64,7 +63,6 @@ def main() -> None:
     from psimap.data import synthetic as G
     from psimap.data import synthetic_shapes as S
 
-    OUT.mkdir(exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix="psimap_bench_gen_"))
     G.generate(tmp / "warmup", seed=0, frames=4, width=32, height=24)  # imports + first-call costs
     rows, plot = [], []
@@ -120,7 +118,7 @@ def main() -> None:
     ax.set_title("psimap generate: time per scene")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(OUT / "generate.png", dpi=120)
+    png = save_plot(fig, "generate")
 
     load = os.getloadavg()[0]
     notes = (f"Mean over seeds {list(SEEDS)}; {os.cpu_count()} CPU cores shared with other jobs (1-min load "
@@ -129,9 +127,12 @@ def main() -> None:
              "generate` process, imports (open3d, trimesh, manifold3d, scipy) included. Label "
              "errors at the default noise 0.15. Chord budget table: the curved-surface error the "
              "tessellation budget buys and what it costs (default "
-             f"{1e3 * default_tol:.2f} mm). Plot: bench_out/generate.png.")
-    append_results("Synthetic scene generator (psimap generate)", table + "\n\n" + tol_table, notes,
-                   command="python benchmarks/generate.py")
+             f"{1e3 * default_tol:.2f} mm).")
+    demo = next(r for r in rows if r[1] == "160x120")
+    write_section("generate", "Synthetic scene generator (psimap generate)",
+                  table + "\n\n" + tol_table + "\n\n" + notes,
+                  headlines=[("60 frames 160x120, cold CLI run (target <= 10 s)",
+                              f"{demo[2]} s wall, {demo[3]} s CPU")], plot=png)
     import shutil
 
     shutil.rmtree(tmp, ignore_errors=True)

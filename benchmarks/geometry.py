@@ -1,9 +1,11 @@
 """Geometry benchmark (issue 5): psimap vs TSDF of the raw noisy depth vs training without the SOGMM
 prior, on synthetic scenes with exact ground truth, plus the real 7-Scenes chess frames.
 
-Reports accuracy, completeness, Chamfer-L1, F1@5 cm, time and surfel count in one run; plots
-iterations vs F1 / time and TSDF voxel size vs F1 / time (bench_out/geometry_*.png); appends the
-tables to benchmarks/RESULTS.md.
+Reports accuracy, completeness, Chamfer-L1, F1@5 cm, time and surfel count in one run; plots CPU
+time vs Chamfer per method (and, with curves, iterations and TSDF voxel size vs F1 / time). Each
+mode has its section of benchmarks/RESULTS.md: `geometry` (default sensor), `geometry/noise-x3`,
+`geometry/dropout-0.9` (depth quality), `geometry/chess`, `geometry/default-train`; --quick and
+--no-append only print.
 
     python benchmarks/geometry.py                 # demo size + two other sizes + chess
     python benchmarks/geometry.py --quick         # small scene only, few iterations
@@ -22,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench_out"
@@ -202,29 +204,78 @@ def run_size(label, frames, width, height, iters, seed, samples, curves: bool, r
             torch.save({"iters": it_curve, "voxel": vox_curve}, OUT / "geometry_curves.pt")
 
 
-def plot_curves(curve_data):
+def plot(rows, curve_data):
+    """CPU seconds vs Chamfer-L1 of every (scene, seed, method) row, then the iteration and TSDF
+    voxel curves when measured: one figure, one panel each (not yet saved)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    for key, xlabel, fname in (("iters", "training iterations", "geometry_iters.png"),
-                               ("voxel", "TSDF voxel size (m)", "geometry_voxel.png")):
-        c = curve_data.get(key)
-        if not c:
-            continue
+    curves = [(key, xlabel) for key, xlabel in (("iters", "training iterations"), ("voxel", "TSDF voxel size (m)"))
+              if curve_data.get(key)]
+    fig, axes = plt.subplots(1, 1 + len(curves), figsize=(5.5 * (1 + len(curves)), 4), squeeze=False)
+    ax = axes[0, 0]
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    for k, method in enumerate((RAW, PSIMAP, NO_PRIOR)):
+        for j, scene in enumerate(scenes):
+            pts = [(r["CPU (s)"], r["Chamfer-L1 (cm)"]) for r in rows
+                   if r["method"] == method and r["scene"] == scene and r["Chamfer-L1 (cm)"] is not None]
+            if pts:
+                ax.scatter(*zip(*pts), color=f"C{k}", marker="os^Dv"[j % 5],
+                           label=method if j == 0 else None)
+    ax.set(xscale="log", xlabel="CPU s (training + meshing; raw TSDF: fusion)", ylabel="Chamfer-L1 (cm)",
+           title="speed vs error, per scene and seed")
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())     # minor labels overlap on a log axis
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    for ax, (key, xlabel) in zip(axes[0, 1:], curves):
+        c = curve_data[key]
         x = [r[0] for r in c]
-        fig, ax = plt.subplots(figsize=(5, 3.5))
         ax.plot(x, [r[2] for r in c], "o-", color="C0")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("F1 @ 5 cm", color="C0")
         ax2 = ax.twinx()
         ax2.plot(x, [r[1] for r in c], "s--", color="C1")
         ax2.set_ylabel("time (s)", color="C1")
-        ax.set_title(f"psimap geometry: {xlabel} vs F1 and time")
-        fig.tight_layout()
-        fig.savefig(OUT / fname, dpi=110)
-        plt.close(fig)
+        ax.set_title(f"psimap: {xlabel} vs F1 and time")
+    fig.tight_layout()
+    return fig
+
+
+def section_key(noise: float, dropout: float | None) -> str:
+    """'geometry' for the default sensor, else e.g. 'geometry/noise-x3', 'geometry/dropout-0.9'."""
+    parts = ([f"noise-x{noise:g}"] if noise != 1.0 else []) + ([f"dropout-{dropout:g}"] if dropout is not None else [])
+    return "/".join(["geometry", "-".join(parts)]) if parts else "geometry"
+
+
+def headlines(rows, means) -> list[tuple[str, str]]:
+    """Per scene: psimap's Chamfer-L1 / F1 beside both baselines' (means over seeds when several)."""
+    out = []
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        seeds = sorted({r["seed"] for r in rows if r["scene"] == scene})
+        vals = {}
+        for m in (PSIMAP, RAW, NO_PRIOR):
+            if (scene, m) in means:
+                vals[m] = means[(scene, m)]
+            else:
+                r = next((r for r in rows if r["scene"] == scene and r["method"] == m), None)
+                vals[m] = r and {c: r[c] for c in ("Chamfer-L1 (cm)", "F1@5cm") if r[c] is not None}
+
+        def cell(m):
+            v = vals.get(m)
+            if not v or v.get("Chamfer-L1 (cm)", float("inf")) == float("inf"):
+                return "no mesh"
+            return f"{v['Chamfer-L1 (cm)']:.3f} cm / {v['F1@5cm']:.4f}"
+
+        if vals.get(PSIMAP) is None:
+            continue
+        base = "; ".join(f"{name} {cell(m)}" for name, m in (("raw TSDF", RAW), ("no prior", NO_PRIOR))
+                         if any(r["method"] == m and r["scene"] == scene for r in rows))
+        label = f"{scene}: psimap Chamfer-L1 / F1@5cm" + (f" (mean of seeds {', '.join(map(str, seeds))})"
+                                                          if len(seeds) > 1 else f" (seed {seeds[0]})")
+        out.append((label, cell(PSIMAP) + (f" (vs {base})" if base else "")))
+    return out
 
 
 def run_chess(iters, seed, n_frames, rows):
@@ -278,7 +329,7 @@ def run_default(frames, width, height, seed, samples):
            f"{load0:.1f} / {os.getloadavg()[0]:.1f}"]
     table = markdown_table(["scene", "geometry steps", "panoptic steps", "wall (s)", "CPU (s)", "surfels",
                             "F1@5cm", "Chamfer-L1 (cm)", "load avg start / end"], [row])
-    return table
+    return table, row
 
 
 def main(argv=None):
@@ -315,13 +366,16 @@ def main(argv=None):
     if args.default_train:
         OUT.mkdir(exist_ok=True)
         f, w, h = (int(v) for v in (args.sizes or "60x160x120").split(",")[0].split("x"))
-        table = run_default(f, w, h, args.seed, args.samples)
+        table, row = run_default(f, w, h, args.seed, args.samples)
         note = ("Default `psimap train` settings (TrainConfig defaults, panoptic phase on); target <= 3 min "
                 "on this 2-core machine. CPU = process time (training is single-threaded, so on an idle "
                 "machine wall ~ CPU); the machine was shared with other jobs.")
         print(table)
-        if not args.no_append:
-            append_results("Geometry: default demo-size training time", table, note)
+        if not (args.no_append or args.quick):
+            write_section("geometry/default-train", "Geometry: default demo-size training time",
+                          table + "\n\n" + note,
+                          headlines=[("default `psimap train`, demo scene, geometry + panoptic (target <= 180 s)",
+                                      f"{row[4]:.1f} s CPU, {row[3]:.1f} s wall")])
         return
     seeds = args.seeds if args.seeds else [args.seed]
     names = {"raw": RAW, "psimap": PSIMAP, "noprior": NO_PRIOR}
@@ -338,7 +392,6 @@ def main(argv=None):
             run_size(f"{f} frames {w}x{h}" + (f", {quality}" if quality else ""), f, w, h, iters, seed,
                      args.samples, k == 0 and j == 0 and not args.no_curves, rows, curves,
                      args.depth_noise, args.depth_dropout, methods)
-    plot_curves(curves)
     table = per_seed_table(rows)
     mtable, means = mean_table(rows) if len(seeds) > 1 else ("", {})
     load_end = os.getloadavg()
@@ -355,34 +408,39 @@ def main(argv=None):
         notes.extend(verdict(means))
     if curves.get("iters"):
         notes.append("Iterations vs F1 / time (first scene): " + ", ".join(
-            f"{s}: F1 {f1:.3f} @ {t:.0f} s" for s, t, f1, _ in curves["iters"]) +
-            " — plot bench_out/geometry_iters.png")
+            f"{s}: F1 {f1:.3f} @ {t:.0f} s" for s, t, f1, _ in curves["iters"]) + " (plot below)")
     if curves.get("voxel"):
         notes.append("TSDF voxel vs F1 / time: " + ", ".join(
-            f"{v * 100:.1f} cm: F1 {f1:.3f} in {t:.1f} s" for v, t, f1, _ in curves["voxel"]) +
-            " — plot bench_out/geometry_voxel.png")
+            f"{v * 100:.1f} cm: F1 {f1:.3f} in {t:.1f} s" for v, t, f1, _ in curves["voxel"]) + " (plot below)")
     for label, name, rounds in curves.get("densify", []):
         notes.append(f"Density control, {label}, {name} (step: cloned / split / pruned -> surfels): " + ", ".join(
             f"{r['step']}: {r['cloned']} / {r['split']} / {r['pruned']} -> {r['surfels']}" for r in rounds))
     chess_rows = []
     if not (args.quick or args.no_chess) and CHESS.exists():
         run_chess(iters, seeds[0], args.chess_frames, chess_rows)
-    if not rows:
-        pass
-    elif args.no_append:
+    record = not (args.no_append or args.quick)
+    if rows and not record:
         print(table)
         print("\n".join(notes))
-    else:
-        append_results("Geometry: psimap vs raw-depth TSDF vs no-prior training", table, "\n\n".join(notes))
+    elif rows:
+        quality = depth_tag(args.depth_noise, args.depth_dropout)
+        write_section(section_key(args.depth_noise, args.depth_dropout),
+                      "Geometry: psimap vs raw-depth TSDF vs no-prior training" + (f" ({quality})" if quality else ""),
+                      table + "\n\n" + "\n\n".join(notes), headlines=headlines(rows, means),
+                      plot=save_plot(plot(rows, curves), section_key(args.depth_noise, args.depth_dropout)))
     if chess_rows:
         t2 = markdown_table(["frames", "iters", "accuracy vs raw TSDF (cm)", "completeness (cm)",
                              "Chamfer-L1 (cm)", "F1@5cm", "raw TSDF (s)", "train (s)", "mesh (s)",
                              "surfels"], chess_rows)
         note = "Real 7-Scenes chess frames: distances between the psimap mesh and the raw-depth TSDF mesh."
-        if args.no_append:
+        if not record:
             print(t2)
         else:
-            append_results("Geometry: 7-Scenes chess, psimap mesh vs raw-depth TSDF", t2, note)
+            c = chess_rows[0]
+            write_section("geometry/chess", "Geometry: 7-Scenes chess, psimap mesh vs raw-depth TSDF",
+                          t2 + "\n\n" + note,
+                          headlines=[(f"7-Scenes {c[0]}: psimap mesh vs raw-depth TSDF mesh",
+                                      f"Chamfer-L1 {c[4]:.3f} cm, F1@5cm {c[5]:.4f}")])
 
 
 if __name__ == "__main__":

@@ -9,8 +9,10 @@ gt/mesh.ply, so the panoptic part is measured alone. On the same frames, in the 
 - oracle: the GT surfel labels rendered the same way (the ceiling of this evaluation protocol).
 Labels of every frame are rendered with `render_labels` and scored against the GT label maps:
 scene-level PQ, SQ, RQ, mIoU, mCov; training time; final query count and instance count vs the
-true object count. Then Top-K K in {1, 2, 4, 8, 16, full}: label-rendering time per frame and PQ
-(plotted to bench_out/panoptic_topk.png). Appends the tables to benchmarks/RESULTS.md.
+true object count. Then Top-K K in {1, 2, 4, 8, 16, full}: label-rendering time per frame and PQ.
+All of a run's tables go into one section of benchmarks/RESULTS.md with its plot (PQ vs label noise,
+Top-K speed vs PQ): `panoptic`; `panoptic/overrides` for a run with --cfg (a tuning experiment, kept
+apart from the default's figures); `panoptic/oracle` for --oracle-sweep. --quick only prints.
 
     .venv/bin/python benchmarks/panoptic.py [--quick] [--seeds 0 1] [--iters 300]
 """
@@ -26,9 +28,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 
-OUT_DIR = Path(__file__).resolve().parents[1] / "bench_out"
 NOISES = (0.0, 0.15, 0.30)
 TOPKS = (1, 2, 4, 8, 16, None)
 
@@ -126,28 +127,51 @@ def n_instances(scene) -> int:
     return int((ids.unique() > 0).sum())
 
 
-def plot_topk(rows, path):
+def plot(mean_rows, topk_rows):
+    """PQ vs label noise per method (means over seeds), and Top-K rendering time vs PQ when measured
+    (the figure, not yet saved)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from psimap.io_utils import atomic_path
-
-    fig, ax = plt.subplots(figsize=(5, 3.6))
-    ms = [r[2] * 1000 for r in rows]
-    pq = [r[1] for r in rows]
-    ax.plot(ms, pq, "o-")
-    for r, x, y in zip(rows, ms, pq):
-        ax.annotate(f"K={r[0]}", (x, y), textcoords="offset points", xytext=(4, -10), fontsize=8)
-    ax.set_xlabel("label rendering time per frame (ms)")
-    ax.set_ylabel("scene PQ")
-    ax.set_title("Top-K label rendering: speed vs PQ")
+    fig, axes = plt.subplots(1, 2 if topk_rows else 1, figsize=(10 if topk_rows else 5, 3.6), squeeze=False)
+    ax = axes[0, 0]
+    for method in ("psimap", "baseline"):
+        pts = [(float(r[0].rstrip("%")), r[2]) for r in mean_rows if r[1] == method]
+        ax.plot(*zip(*pts), "o-", label=method)
+    ax.set(xlabel="pseudo-label noise (%)", ylabel="scene PQ (mean over seeds)", title="PQ vs label noise")
+    ax.legend()
     ax.grid(alpha=0.3)
+    if topk_rows:
+        ax = axes[0, 1]
+        ms = [r[2] * 1000 for r in topk_rows]
+        pq = [r[1] for r in topk_rows]
+        ax.plot(ms, pq, "o-")
+        for r, x, y in zip(topk_rows, ms, pq):
+            ax.annotate(f"K={r[0]}", (x, y), textcoords="offset points", xytext=(4, -10), fontsize=8)
+        ax.set(xlabel="label rendering time per frame (ms)", ylabel="scene PQ",
+               title="Top-K label rendering: speed vs PQ")
+        ax.grid(alpha=0.3)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    return fig
+
+
+def headlines(rows, mean_rows, topk_rows) -> list[tuple[str, str]]:
+    """PQ of psimap vs the baseline at 15 % noise (else the first noise measured) with each seed's
+    final queries / objects, and Top-K K = 8 against full blending."""
+    noises = [r[0] for r in mean_rows]
+    noise = "15%" if "15%" in noises else noises[0]
+    pq = {r[1]: r[2] for r in mean_rows if r[0] == noise}
+    ours = [r for r in rows if r[1] == noise and r[2] == "psimap"]
+    out = [(f"PQ at {noise} label noise, psimap vs baseline (mean of seeds {' '.join(str(r[0]) for r in ours)})",
+            f"{pq['psimap']:.4f} vs {pq['baseline']:.4f}; queries / objects "
+            + ", ".join(f"{r[11]}/{r[13]}" for r in ours))]
+    k8, full = (next((r for r in topk_rows if r[0] == k), None) for k in (8, "full"))
+    if k8 and full:
+        out.append(("Top-K label rendering, K = 8 vs full blending",
+                    f"PQ {k8[1]:.4f} vs {full[1]:.4f}, {k8[2] * 1000:.0f} vs {full[2] * 1000:.0f} ms/frame"))
+    return out
 
 
 def main() -> None:
@@ -237,21 +261,21 @@ def main() -> None:
              f"{DEFAULT_SUPERSAMPLE} samples per pixel (psimap.panoptic.labels). 'train s' is wall time, "
              f"'train CPU s' process CPU time (single-threaded fit: compare this column), on a CPU shared "
              f"with other jobs (load average at start / end: {load0} / {_load()}).")
-    if topk_rows:
-        OUT_DIR.mkdir(exist_ok=True)
-        plot_topk(topk_rows, OUT_DIR / "panoptic_topk.png")
     if args.quick:
         print(markdown_table(HEADER, rows))
         print(markdown_table(["K", "PQ", "s/frame", "mIoU"], topk_rows))
         return
-    append_results("Panoptic: psimap field vs naive lift-and-merge baseline (GT geometry)",
-                   markdown_table(HEADER, rows) + "\n\nMeans over seeds:\n\n"
-                   + markdown_table(MEAN_HEADER, mean_rows), notes, cmd)
+    body = (markdown_table(HEADER, rows) + "\n\nMeans over seeds:\n\n" + markdown_table(MEAN_HEADER, mean_rows)
+            + "\n\n" + notes)
     if topk_rows:
-        append_results("Panoptic: Top-K label rendering, speed vs PQ (psimap labels, 15 % noise)",
-                       markdown_table(["K", "scene PQ", "render s/frame", "mIoU"], topk_rows),
-                       "Plot: bench_out/panoptic_topk.png. One-hot hard labels blended over the K largest "
-                       "weights per pixel (instance and class channels in one pass).", cmd)
+        body += ("\n\nTop-K label rendering, speed vs PQ (psimap labels of the first seed, 15 % noise; one-hot "
+                 "hard labels blended over the K largest weights per pixel, instance and class channels in "
+                 "one pass):\n\n" + markdown_table(["K", "scene PQ", "render s/frame", "mIoU"], topk_rows))
+    key = "panoptic/overrides" if over else "panoptic"
+    write_section(key, "Panoptic: psimap field vs naive lift-and-merge baseline (GT geometry)"
+                  + (f", PanopticConfig overrides {over}" if over else ""), body,
+                  headlines=[] if over else headlines(rows, mean_rows, topk_rows),
+                  command=cmd, plot=save_plot(plot(mean_rows, topk_rows), key))
 
 
 def oracle_sweep(seed, n_frames, width, height, coarsen) -> None:
@@ -275,13 +299,19 @@ def oracle_sweep(seed, n_frames, width, height, coarsen) -> None:
         rows.append([ss, m["pq"], m["miou"], *[iou.get(c, float("nan")) for c in small], t])
         print(markdown_table(["ss", "PQ", "mIoU", *small, "s/frame"], [rows[-1]]).splitlines()[-1], flush=True)
     cmd = "python benchmarks/panoptic.py " + " ".join(sys.argv[1:])
-    append_results("Panoptic: GT-surfel oracle vs label samples per pixel",
-                   markdown_table(["samples per side", "oracle PQ", "mIoU", *[f"{c} IoU" for c in small],
-                                   "render s/frame"], rows),
-                   f"Seed {seed}, {n_frames} frames {width}x{height}, GT surfels (scene_from_meshes) with GT "
-                   f"labels rendered by render_labels(supersample=ss). The renderer's low-pass filter bleeds "
-                   f"~1/ss px past every limb; small objects cover a median 7-60 px. Times on a CPU shared "
-                   f"with other jobs (load average at start / end: {load0} / {_load()}).", cmd)
+    from psimap.panoptic.labels import DEFAULT_SUPERSAMPLE
+
+    default = next(r for r in rows if r[0] == DEFAULT_SUPERSAMPLE)
+    write_section("panoptic/oracle", "Panoptic: GT-surfel oracle vs label samples per pixel",
+                  markdown_table(["samples per side", "oracle PQ", "mIoU", *[f"{c} IoU" for c in small],
+                                  "render s/frame"], rows) + "\n\n" +
+                  f"Seed {seed}, {n_frames} frames {width}x{height}, GT surfels (scene_from_meshes) with GT "
+                  f"labels rendered by render_labels(supersample=ss). The renderer's low-pass filter bleeds "
+                  f"~1/ss px past every limb; small objects cover a median 7-60 px. Times on a CPU shared "
+                  f"with other jobs (load average at start / end: {load0} / {_load()}).",
+                  headlines=[(f"GT-surfel oracle PQ at {DEFAULT_SUPERSAMPLE}x{DEFAULT_SUPERSAMPLE} label samples "
+                              "per pixel (the default; the ceiling of this protocol)",
+                              f"{default[1]:.4f} (1x1: {rows[0][1]:.4f})")], command=cmd)
 
 
 def _load() -> str:

@@ -3,7 +3,8 @@
 Per resolution: forward and forward+backward time of the torch reference (and the native backend
 when it is built), tile pairs with the bounding-circle baseline vs the precise AABB (the same image:
 the max pixel difference is printed next to it), and Top-K (K = 4, 8, 16) feature error against full
-blending. Appends the table to benchmarks/RESULTS.md and writes bench_out/render.png.
+blending. Writes its section of benchmarks/RESULTS.md and its plot (benchmarks/plots/render.png);
+a --quick smoke run prints its table and leaves both alone (its picture goes to bench_out/).
 
     python benchmarks/render.py            # ~50k surfels, 320x240 and 640x480, C = 32
     python benchmarks/render.py --quick    # small smoke run
@@ -21,7 +22,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 
 from psimap.render import rasterize  # noqa: E402
 
@@ -214,23 +215,45 @@ def main(argv=None) -> int:
              f"{', '.join(reductions)} fewer, same image (max |diff| column, vs the first row of the "
              f"resolution). Top-K error is over pixels with alpha > 0.5 against full feature blending "
              f"(relative = mean abs err / mean |feature|). Peak RSS {peak_gib:.2f} GiB.")
+    fig = plot(images)
     if args.quick:   # a smoke run prints its table but leaves RESULTS.md alone
         print(markdown_table(header, rows))
         print(notes)
-    else:
-        append_results("Surfel rasterizer (reference" + (" + native" if len(backends) > 1 else "") + ")",
-                       markdown_table(header, rows), notes, command="python benchmarks/render.py")
-    plot(images, OUT_DIR / "render.png")
+        OUT_DIR.mkdir(parents=True, exist_ok=True)
+        fig.savefig(OUT_DIR / "render.png", dpi=80)
+        print(f"wrote {OUT_DIR / 'render.png'}")
+        return 0
+    write_section("render", "Surfel rasterizer (reference" + (" + native" if len(backends) > 1 else "") + ")",
+                  markdown_table(header, rows) + "\n\n" + notes, headlines=headlines(rows, resolutions),
+                  plot=save_plot(fig, "render", dpi=80))
     return 0
 
 
-def plot(images: dict, path: Path) -> None:
+def headlines(rows, resolutions) -> list[tuple[str, str]]:
+    """Summary rows: native vs reference fwd+bwd CPU time and the precise tiles' pair saving, at the
+    largest resolution."""
+    res = "{}x{}".format(*resolutions[-1])
+
+    def cpu(backend, tiles, features="all"):
+        r = next((r for r in rows if r[:4] == [res, backend, tiles, features]), None)
+        return None if r is None or r[5] == "-" else float(r[5].split(" / ")[1])
+
+    c, p = (next(r[6] for r in rows if r[0] == res and r[2] == t) for t in ("circle", "precise"))
+    out = [(f"precise tiles vs bounding circle, {res}", f"{100 * (1 - p / c):.1f} % fewer tile pairs, same image")]
+    native, ref = cpu("native", "precise"), cpu("reference", "precise")
+    if native and ref:
+        out.insert(0, (f"fwd+bwd CPU s at {res}, native vs torch reference",
+                       f"{native:.3g} vs {ref:.3g} s ({ref / native:.0f}x)"))
+    return out
+
+
+def plot(images: dict):
+    """RGB, depth, normal and distortion of the last resolution (the figure, not yet saved)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    path.parent.mkdir(parents=True, exist_ok=True)
     res, out = list(images.items())[-1]
     fig, ax = plt.subplots(1, 4, figsize=(16, 3.4))
     ax[0].imshow(out.rgb.detach().clamp(0, 1).numpy())
@@ -244,9 +267,7 @@ def plot(images: dict, path: Path) -> None:
     for a in ax:
         a.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    print(f"wrote {path}")
+    return fig
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@ Rows: Baseline (circle tiles, full blending) / + Precise tile / + Top-K / Full (
 time per frame (forward, and forward+backward), FPS, RN-Total (tile-surfel pairs), RN/Tile, and the
 feature error against full blending. Then native vs the torch reference on the Full configuration,
 forward and forward+backward, in the same run, and the per-stage split of a native frame (the
-profile that says what bounds it). Appends to benchmarks/RESULTS.md.
+profile that says what bounds it). Writes its section of benchmarks/RESULTS.md and its plot
+(benchmarks/plots/render_ablation.png); a --quick smoke run only prints.
 
     python benchmarks/render_ablation.py              # 60k surfels, 640x480, C = 32, K = 8
     python benchmarks/render_ablation.py --quick      # small smoke run
@@ -22,7 +23,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 from render import intrinsics, look_at_viewmat, room_surfels  # noqa: E402
 
 from psimap.render import project_surfels, rasterize  # noqa: E402
@@ -141,9 +142,33 @@ def main(argv=None) -> int:
     title = "Renderer ablation (paper Table ablation_speed), native CPU kernels"
     if args.quick:       # smoke run: print, do not record
         print(f"## {title}\n\n{table}\n\n{notes}")
-    else:
-        append_results(title, table, notes, command="python benchmarks/render_ablation.py")
+        return 0
+    write_section("render_ablation", title, f"{table}\n\n{notes}", plot=save_plot(plot(rows), "render_ablation"),
+                  headlines=[("native vs torch reference, fwd+bwd, Full config (target >= 10x)",
+                              f"{rfb[1] / nfb[1]:.1f}x CPU ({rfb[0] / nfb[0]:.1f}x wall)"),
+                             ("Full vs Baseline, stages 2-3 forward, CPU (target >= 2x)", f"{full_speedup:.2f}x"),
+                             ("precise tiles (target >= 35 % fewer pairs)", f"{100 * fewer:.1f} % fewer")])
     return 0
+
+
+def plot(rows):
+    """Raster CPU time beside the feature error it costs, one bar pair per configuration."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [r[2] for r in rows], 0.4, color="C0", label="raster CPU ms")
+    ax.set_ylabel("raster CPU ms (stages 2-3)", color="C0")
+    ax2 = ax.twinx()
+    ax2.bar(x + 0.2, [100 * r[9] for r in rows], 0.4, color="C1", label="feature error %")
+    ax2.set_ylabel("feature rel. error vs full (%)", color="C1")
+    ax.set_xticks(x, [r[0].replace(" (", "\n(") for r in rows], fontsize=8)
+    ax.set_title("Renderer ablation: speed vs error")
+    fig.tight_layout()
+    return fig
 
 
 if __name__ == "__main__":

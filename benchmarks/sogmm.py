@@ -2,7 +2,7 @@
 residual budgets, on the shared real KITTI Velodyne sweep (skipped if absent) and on a synthetic
 room with boxes sampled to 1 M points; plus the 1 M point timing with default settings.
 
-Run: .venv/bin/python benchmarks/sogmm.py   (appends to benchmarks/RESULTS.md, plot in bench_out/)
+Run: .venv/bin/python benchmarks/sogmm.py   (its section of benchmarks/RESULTS.md, plot in benchmarks/plots/)
 """
 from __future__ import annotations
 
@@ -13,11 +13,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import append_results, markdown_table  # noqa: E402
+from _results import markdown_table, save_plot, write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti-velodyne" / "000000.bin"
-OUT = ROOT / "bench_out"
 
 
 def box_surface(lo, hi, n: int, rng, *, open_top: bool = False, inward: bool = False):
@@ -155,7 +154,6 @@ def main() -> int:
 
     header = ["cloud", "input pts", "fitted pts", "voxel cm", "budget cm", "K", "mean pt-to-plane mm",
               "normals within 10 deg", "fit time s"]
-    OUT.mkdir(exist_ok=True)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for name, pts in curve.items():
         if len(pts) < 2:
@@ -170,15 +168,18 @@ def main() -> int:
         ax.grid(alpha=0.3)
     fig.suptitle("SOGMM: K and fit time vs point-to-plane budget")
     fig.tight_layout()
-    fig.savefig(OUT / "sogmm_budget.png", dpi=120)
+    png = save_plot(fig, "sogmm")
     notes.append("Synthetic room: 6x5x3 m, 6 boxes, 2 cylinders, a ball; 3 mm noise along the normal "
                  "(mean |noise| 2.4 mm). Budget sweep rows use max_extent = 1 m. "
                  "Fit time = the fit_sogmm call, voxel downsampling included (the normals check is "
                  "not timed). No-downsampling row: every point fitted, the budget near the noise level. "
-                 "Plot: bench_out/sogmm_budget.png. "
                  "Target: <= 30 s for 1 M points on this machine (2 cores).")
-    append_results("SOGMM prior: fit time, K and residual vs budget", markdown_table(header, rows),
-                   " ".join(notes), command="python benchmarks/sogmm.py")
+    auto = next(r for r in rows if r[0] == "room 1M pts, all auto")
+    write_section("sogmm", "SOGMM prior: fit time, K and residual vs budget",
+                  markdown_table(header, rows) + "\n\n" + " ".join(notes),
+                  headlines=[("fit of 1 M points, all auto (target <= 30 s)",
+                              f"{auto[8]} s, K {auto[5]}, mean residual {auto[6]} mm")],
+                  plot=png)
     return 0
 
 
