@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from psimap.transforms import quat_to_rotmat, transform_points
+
 # pixels seen by less than this much surfel coverage are unknown, not free space
 MIN_ALPHA = 0.5
 # an instance seen on fewer pixels than this in a view adds nothing but noise to its fusion
@@ -192,7 +194,7 @@ def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float
     for v in views:
         h, w = v.depth.shape
         cam = np.linalg.inv(v.c2w)
-        pc = means.numpy().astype(np.float64) @ cam[:3, :3].T + cam[:3, 3]
+        pc = transform_points(means.numpy().astype(np.float64), cam)
         z = pc[:, 2][pc[:, 2] > 1e-3]
         if len(z) == 0:
             continue
@@ -226,10 +228,7 @@ def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float
 
 def surfel_normals(quats) -> np.ndarray:
     """[n, 3] unit normals (local z axis) of surfels with quaternions quats [n, 4] (w, x, y, z)."""
-    q = np.asarray(quats.detach() if hasattr(quats, "detach") else quats, np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12)
-    w, x, y, z = q.T
-    return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=1)
+    return quat_to_rotmat(quats.detach() if hasattr(quats, "detach") else quats)[:, :, 2]
 
 
 def project_to_surfels(mesh, centres: np.ndarray, normals: np.ndarray, k: int = 6):

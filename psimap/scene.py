@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from psimap import PsimapError
+from psimap.transforms import rotmat_to_quat
 
 # Rays per pixel side when meshing the rendered views. Measured on the demo scene (seed 0, 450
 # steps): ss 1 / 2 / 3 -> Chamfer-L1 1.66 / 1.30 / 1.20 cm, F1@5cm 0.958 / 0.965 / 0.965, rendering +
@@ -243,16 +244,6 @@ def frame_from_normal(normals):
     return np.stack([t1, t2, n], axis=2)
 
 
-def matrix_to_quat(R):
-    """Rotation matrices [N,3,3] -> unit quaternions [N,4] (w, x, y, z), w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()   # x, y, z, w
-    q = np.concatenate([q[:, 3:], q[:, :3]], 1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q
-
-
 def _pixel_spacing(meshes, cameras) -> float | None:
     """Size of two pixels at the median camera-to-surface distance (what the views can resolve)."""
     if not cameras or len(cameras.get("names", [])) == 0:
@@ -313,7 +304,7 @@ def scene_from_meshes(meshes: Sequence, instance_ids: Sequence[int], semantic_id
         parts["iid"].append(np.full(len(pts), int(instance_ids[j])))
         parts["sid"].append(np.full(len(pts), int(semantic_ids[j])))
     means = np.concatenate(parts["means"])
-    quats = matrix_to_quat(frame_from_normal(np.concatenate(parts["normals"])))
+    quats = rotmat_to_quat(frame_from_normal(np.concatenate(parts["normals"])))
     n = len(means)
     # Gaussian sigma ~ 0.6 spacing: neighbours overlap enough that the rendered surface has no holes
     scales = np.full((n, 2), 0.6 * spacing)
