@@ -1,4 +1,7 @@
-"""A trained scene: surfels + class table + cameras, as loaded from `scene.ckpt` (`psimap.load`).
+"""A trained scene: surfels + class table + cameras, as loaded from `scene.ckpt` (`load_scene`).
+
+Every stage from training on passes this value around; the users' `psimap.load` returns the
+subclass `psimap.api.Scene`, which adds the export stage's `objects()`.
 
 Also `scene_from_meshes`: surfels sampled on given meshes with hard labels, so later stages (export,
 completion, sim) can be tested on exact geometry independently of training quality.
@@ -37,6 +40,13 @@ class Scene:
                             metrics=metrics)
         self._set_state(state)
         self.path = path
+
+    @classmethod
+    def load(cls, path) -> "Scene":
+        """Read `scene.ckpt` (never unpickles code); PsimapError for a bad file."""
+        from psimap.checkpoint import load_checkpoint
+
+        return cls.from_state(load_checkpoint(path), path=str(path))
 
     @classmethod
     def from_state(cls, state: dict, path: str | None = None) -> "Scene":
@@ -217,18 +227,10 @@ class Scene:
                          min_component_voxels=(SCENE_MIN_COMPONENT_VOXELS if min_component_voxels is None
                                                else min_component_voxels), progress=progress)
 
-    def objects(self, **kw):
-        """Per-object meshes (`psimap.exporters.objects.extract_objects(scene, **kw)`)."""
-        from psimap.exporters.objects import extract_objects
-
-        return extract_objects(self, **kw)
-
 
 def load_scene(path) -> Scene:
     """Read `scene.ckpt` (never unpickles code); PsimapError for a bad file."""
-    from psimap.checkpoint import load_checkpoint
-
-    return Scene.from_state(load_checkpoint(path), path=str(path))
+    return Scene.load(path)
 
 
 def frame_from_normal(normals):
