@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from psimap.transforms import quat_to_rotmat, transform_points
+from psimap.transforms import quat_to_rotmat, scale_intrinsics, transform_points
 
 # pixels seen by less than this much surfel coverage are unknown, not free space
 MIN_ALPHA = 0.5
@@ -200,10 +200,7 @@ def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float
             continue
         footprint = float(np.median(z)) / float(v.K[0, 0])
         scale = min(max(1.0, px_per_voxel * footprint / voxel), max_side / max(h, w))
-        K = np.array(v.K, np.float64).copy()
-        K[:2] *= scale
-        K[0, 2] += 0.5 * (scale - 1)    # pixel centres stay aligned: (u + 0.5) scales
-        K[1, 2] += 0.5 * (scale - 1)
+        K = scale_intrinsics(v.K, scale)
         W, H = int(round(w * scale)), int(round(h * scale))
         with torch.no_grad():
             out = rasterize(means, surfels["quats"], surfels["scales"], surfels["opacities"], surfels["colors"],

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psimap.transforms import camera_to_pixels, transform_points
+from psimap.transforms import camera_to_pixels, scale_intrinsics, transform_points
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -35,18 +35,15 @@ def orbit(n: int, radius: float, height: float, target=(0.0, 0.0, 0.0)) -> list[
 def supersample_intrinsics(K, ss: int) -> np.ndarray:
     """K [3, 3] of an image with ss x ss samples per pixel of the image K describes.
 
-    Pixel centres are integers (OpenCV), so the samples of pixel x sit at x + (i + 0.5) / ss - 0.5,
-    i.e. at X = ss x + (ss - 1) / 2 in the fine image. ss must be a positive integer (PsimapError).
+    With pixel centres at integers (OpenCV, psimap.transforms.PIXEL_CENTER) the samples of pixel x
+    sit at x + (i + 0.5) / ss - 0.5, i.e. at X = ss x + (ss - 1) / 2 in the fine image. ss must be
+    a positive integer (PsimapError).
     """
     from psimap import PsimapError
 
     if int(ss) != ss or ss < 1:
         raise PsimapError(f"supersample must be a positive integer, got {ss}")
-    ss = int(ss)
-    K = np.array(K, dtype=np.float64)
-    K[:2, :] *= ss
-    K[:2, 2] += 0.5 * (ss - 1)
-    return K
+    return scale_intrinsics(K, int(ss))
 
 
 def nearest_pixels(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, width: int, height: int,

@@ -57,6 +57,18 @@ def camera_to_pixels(x, y, z, K):
     return u, v
 
 
+def scale_intrinsics(K, s: float) -> np.ndarray:
+    """K [3, 3] of the same view resampled to s times as many pixels per side (s > 1 finer).
+
+    Pixel edges scale, centres do not: pixel u spans [u + PIXEL_CENTER - 0.5, u + PIXEL_CENTER +
+    0.5), so the principal point moves by (0.5 - PIXEL_CENTER) (s - 1). Returns a new float64 array.
+    """
+    K = np.array(K, np.float64)
+    K[:2, :] *= s
+    K[:2, 2] += (0.5 - PIXEL_CENTER) * (s - 1)
+    return K
+
+
 def transform_points(points, T):
     """points [..., 3] mapped by the rigid transform T [4, 4] (e.g. camera-to-world): p @ R.T + t.
 

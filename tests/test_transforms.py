@@ -174,3 +174,19 @@ def test_depth_to_world_ignores_non_finite_depth(bad):
     depth[1, 1] = 1.0
     pts, v, u = depth_to_world(depth, K, np.eye(4))
     assert np.isfinite(pts).all() and (v.tolist(), u.tolist()) == ([1], [1])
+
+
+def test_scale_intrinsics_keeps_the_view():
+    """A camera point lands on the same spot of the image at any resolution: pixel u of the coarse
+    image covers fine pixels s u .. s u + s - 1, whose mean index is the coarse pixel's centre."""
+    from psimap.transforms import scale_intrinsics
+
+    p = np.array([[0.3, -0.2, 2.0], [-1.0, 0.5, 4.0]])
+    for s in (2, 3, 0.5, 1.7):
+        K2 = scale_intrinsics(K, s)
+        u, v = camera_to_pixels(p[:, 0], p[:, 1], p[:, 2], K)
+        u2, v2 = camera_to_pixels(p[:, 0], p[:, 1], p[:, 2], K2)
+        np.testing.assert_allclose(u2, (u + 0.5) * s - 0.5, atol=1e-12)
+        np.testing.assert_allclose(v2, (v + 0.5) * s - 0.5, atol=1e-12)
+    np.testing.assert_array_equal(scale_intrinsics(K, 1), K)
+    assert scale_intrinsics(K, 2)[0, 2] == 100.5 and scale_intrinsics(K, 2)[1, 1] == 400.0
