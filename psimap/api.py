@@ -14,7 +14,7 @@ class Scene(scene.Scene):
     """A trained scene (`psimap.scene.Scene`) with its per-object assets one call away."""
 
     def objects(self, **kw):
-        """Per-object meshes in metres, world frame: `psimap.exporters.objects.extract_objects(self, **kw)`."""
+        """Per-object meshes, metres, world frame (psimap.exporters.objects.extract_objects)."""
         from psimap.exporters.objects import extract_objects
 
         return extract_objects(self, **kw)

@@ -1,6 +1,6 @@
 """Camera, rotation and surface-sampling maths every stage shares: plain functions over plain arrays.
 
-The conventions live here once, so fixing one is a one-line change:
+The conventions live here once, so fixing one for every caller is a one-line change:
 - pixels (`PIXEL_CENTER`): OpenCV, pixel (u, v) is centred at integer image coordinates; a
   camera point (x, y, z) (x right, y down, z forward) is at u = fx x / z + cx, v = fy y / z + cy.
 - quaternions (`_wxyz`, `_from_wxyz`): (w, x, y, z), scalar first, any non-zero norm (normalised
@@ -100,7 +100,7 @@ def depth_to_world(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, *, stride:
 # ---- quaternions <-> rotations ----------------------------------------------------------------
 
 def _wxyz(c):
-    """Components (w, x, y, z) from the four slices c along the quaternion axis, in this module's order."""
+    """Components (w, x, y, z) from the four slices c along the quaternion axis (this module's order)."""
     return c[0], c[1], c[2], c[3]
 
 
@@ -123,7 +123,8 @@ def quat_to_rotmat(quats) -> np.ndarray:
     q = np.asarray(quats, np.float64)
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
     q = q / np.where(norm > 0, norm, 1.0)
-    return np.stack(_rotation_entries(*_wxyz(np.moveaxis(q, -1, 0))), axis=-1).reshape(q.shape[:-1] + (3, 3))
+    R = np.stack(_rotation_entries(*_wxyz(np.moveaxis(q, -1, 0))), axis=-1)
+    return R.reshape(q.shape[:-1] + (3, 3))
 
 
 def quat_to_rotmat_torch(quats):
@@ -132,7 +133,8 @@ def quat_to_rotmat_torch(quats):
 
     norm = quats.norm(dim=-1, keepdim=True)
     q = quats / torch.where(norm > 0, norm, torch.ones_like(norm))
-    return torch.stack(_rotation_entries(*_wxyz(q.unbind(-1))), dim=-1).reshape(quats.shape[:-1] + (3, 3))
+    R = torch.stack(_rotation_entries(*_wxyz(q.unbind(-1))), dim=-1)
+    return R.reshape(quats.shape[:-1] + (3, 3))
 
 
 def rotmat_to_quat(R) -> np.ndarray:
