@@ -26,9 +26,8 @@ FOLDERS = {"psimap": "psimap", "exporters": "psimap.exporters", "completion": "p
 # - completion and sim are steps the export pipeline calls (complete a partial object, check the
 #   written scene in MuJoCo): they come before exporters and never import it.
 STAGES = [
-    # shared helpers every stage uses: atomic writes, CLI option tables (stdlib only), cameras,
-    # pixel / rotation / sampling maths
-    ("base", ("psimap.io_utils", "psimap.options", "psimap.camera", "psimap.transforms")),
+    # shared helpers every stage uses: atomic writes, cameras, pixel / rotation / sampling maths
+    ("base", ("psimap.io_utils", "psimap.camera", "psimap.transforms")),
     ("data", ("psimap.data",)),
     ("geometry", ("psimap.geometry",)),
     # thread counts of the renderer's kernels (and torch) for the small per-view work of meshing
@@ -41,10 +40,11 @@ STAGES = [
     ("sim", ("psimap.sim",)),
     ("exporters", ("psimap.exporters",)),
 ]
-# Entry points may import any stage, and no stage imports them. The package root defines
+# Entry points may import any stage, and no stage imports them (psimap.options: the CLI's option
+# tables, which list the choices the later stages register). The package root defines
 # PsimapError (every stage raises it) and the lazy `psimap.load`; Python runs a package's
 # __init__ before any of its submodules anyway, so an import of the root's own names is no edge.
-FACADES = ("psimap", "psimap.__main__", "psimap.cli", "psimap.demo", "psimap.api")
+FACADES = ("psimap", "psimap.__main__", "psimap.cli", "psimap.options", "psimap.demo", "psimap.api")
 ROOT_NAMES = {"PsimapError", "__version__"}
 # Compiled modules (psimap/render/csrc, built by the package build): no source to parse.
 EXTENSIONS = {"psimap.render._native"}
