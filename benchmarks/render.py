@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import markdown_table, save_plot, write_section  # noqa: E402
 
 from psimap.render import rasterize  # noqa: E402
+from psimap.transforms import rotmat_to_quat  # noqa: E402
 
 OUT_DIR = Path(__file__).resolve().parents[1] / "bench_out"
 
@@ -85,14 +86,6 @@ def room_surfels(n: int, channels: int, seed: int = 0):
     as_t = lambda x: torch.tensor(np.asarray(x), dtype=torch.float32)  # noqa: E731
     return (as_t(means), as_t(quats), as_t(scales), as_t(opacities), as_t(np.concatenate(colors)),
             as_t(np.concatenate(feats)))
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """R: [N, 3, 3] proper rotations -> [N, 4] (w, x, y, z)."""
-    from scipy.spatial.transform import Rotation
-
-    xyzw = Rotation.from_matrix(R).as_quat()
-    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
 
 
 def look_at_viewmat(eye, target, up=(0, 0, 1)) -> torch.Tensor:

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from psimap import transforms
+
 
 def as_trimesh(vertices: np.ndarray, faces: np.ndarray):
     import trimesh
@@ -157,14 +159,7 @@ def sample_surface(mesh, spacing: float, max_points: int = 200_000, seed: int = 
     if not area > 0:
         return np.asarray(mesh.vertices, dtype=np.float64)
     n = int(np.clip(2.0 * area / spacing ** 2, 200, max_points))
-    rng = np.random.default_rng(seed)
-    tri = mesh.triangles
-    w = mesh.area_faces / area
-    fid = rng.choice(len(tri), size=n, p=w)
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    a, b, c = tri[fid, 0], tri[fid, 1], tri[fid, 2]
-    return (1 - s)[:, None] * a + (s * (1 - r2))[:, None] * b + (s * r2)[:, None] * c
+    return transforms.sample_surface(mesh, n, seed)
 
 
 def volume_of_intersection(a, b) -> float:

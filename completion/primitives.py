@@ -12,7 +12,7 @@ import numpy as np
 from .support import UP
 
 
-def _sections(radius: float, tolerance: float) -> int:
+def circle_sections(radius: float, tolerance: float) -> int:
     """Polygon sides so that the chord sagitta r(1 - cos(pi/n)) stays below tolerance / 20."""
     if radius <= 0:
         return 8
@@ -53,7 +53,7 @@ def _kasa_fit(points: np.ndarray):
     return c, float(np.sqrt(r2))
 
 
-def _circle_fit(xy: np.ndarray):
+def circle_fit(xy: np.ndarray):
     """Kasa circle fit of 2D points [P, 2]. Returns (centre [2], radius) or None."""
     return _kasa_fit(xy)
 
@@ -75,7 +75,7 @@ def _robust_circle(xy: np.ndarray, init, tolerance: float):
     return sol.x[:2], float(sol.x[2])
 
 
-def _frame(axis: np.ndarray) -> np.ndarray:
+def axis_frame(axis: np.ndarray) -> np.ndarray:
     """Rotation [3, 3] whose third column is `axis` (unit)."""
     axis = axis / np.linalg.norm(axis)
     helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
@@ -85,7 +85,7 @@ def _frame(axis: np.ndarray) -> np.ndarray:
     return np.stack([x, y, axis], axis=1)
 
 
-def _support_level(support, axis: np.ndarray, centre: np.ndarray):
+def support_level(support, axis: np.ndarray, centre: np.ndarray):
     """Axial coordinate (along axis, from 0) where the line centre + s*axis meets the support."""
     if support is None:
         return None
@@ -103,9 +103,9 @@ def fit_cylinder(points: np.ndarray, tolerance: float, support=None):
     axes = [UP] if support is not None else list(np.linalg.svd(points - points.mean(0))[2])
     best, best_res = None, np.inf
     for axis in axes:
-        R = _frame(np.asarray(axis, dtype=np.float64))
+        R = axis_frame(np.asarray(axis, dtype=np.float64))
         local = points @ R
-        circ = _circle_fit(local[:, :2])
+        circ = circle_fit(local[:, :2])
         if circ is None:
             continue
         c2, r = _robust_circle(local[:, :2], circ, tolerance)
@@ -121,12 +121,12 @@ def fit_cylinder(points: np.ndarray, tolerance: float, support=None):
         return None
     R, c2, r, z0, z1 = best
     centre_line = R @ np.array([c2[0], c2[1], 0.0])
-    s = _support_level(support, R[:, 2], centre_line)
+    s = support_level(support, R[:, 2], centre_line)
     if s is not None:
         z0 = min(z0, s) if s < z1 else z0
     if z1 - z0 <= 0:
         return None
-    m = trimesh.creation.cylinder(radius=r, height=z1 - z0, sections=_sections(r, tolerance))
+    m = trimesh.creation.cylinder(radius=r, height=z1 - z0, sections=circle_sections(r, tolerance))
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = R @ np.array([c2[0], c2[1], 0.5 * (z0 + z1)])
@@ -160,7 +160,7 @@ def fit_box(points: np.ndarray, tolerance: float, support=None, planes=()):
             if near.sum() >= 20:
                 bound[axis] = np.median(local[near, axis])
     if support is not None:
-        s = _support_level(support, R[:, 2], R @ np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.0]))
+        s = support_level(support, R[:, 2], R @ np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.0]))
         if s is not None and s < hi[2]:
             lo[2] = min(lo[2], s)
     ext = hi - lo

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .primitives import _circle_fit, _frame, _sections, _support_level
+from .primitives import axis_frame, circle_fit, circle_sections, support_level
 from .support import UP
 
 _MIN_ARC_DEG = 90.0     # narrower arcs do not pin the axis down
@@ -26,7 +26,7 @@ def fit_revolution(points: np.ndarray, tolerance: float, support=None):
     axes = [UP] if support is not None else list(np.linalg.svd(points - points.mean(0))[2])
     best = None
     for axis in axes:
-        R = _frame(np.asarray(axis, dtype=np.float64))
+        R = axis_frame(np.asarray(axis, dtype=np.float64))
         local = points @ R
         z = local[:, 2]
         step = max(2 * tolerance, np.ptp(z) / 200)
@@ -36,7 +36,7 @@ def fit_revolution(points: np.ndarray, tolerance: float, support=None):
         for k in range(n_slices):
             xy = local[sl == k, :2]
             if len(xy) >= 8:
-                c = _circle_fit(xy)
+                c = circle_fit(xy)
                 if c is not None and c[1] < 5 * np.ptp(local[:, :2], axis=0).max():
                     centres.append(c[0])
         if len(centres) < 2:
@@ -68,13 +68,13 @@ def fit_revolution(points: np.ndarray, tolerance: float, support=None):
         return None, {**stats, "reason": "points do not lie on one surface of revolution"}
     zs = np.minimum(z0 + step * (np.arange(len(profile)) + 0.5), z1)
     bottom, top = z0, z1
-    s = _support_level(support, R[:, 2], R @ np.array([c2[0], c2[1], 0.0]))
+    s = support_level(support, R[:, 2], R @ np.array([c2[0], c2[1], 0.0]))
     if s is not None and s < bottom:
         bottom = s
     r = np.concatenate([[profile[0]], profile, [profile[-1]]])
     h = np.concatenate([[bottom], zs, [top]])
     line = np.concatenate([[[0.0, bottom]], np.stack([r, h], 1), [[0.0, top]]])
-    mesh = trimesh.creation.revolve(line, sections=_sections(float(profile.max()), tolerance))
+    mesh = trimesh.creation.revolve(line, sections=circle_sections(float(profile.max()), tolerance))
     if not mesh.is_watertight:
         return None, {**stats, "reason": "revolved profile is not closed"}
     if mesh.volume < 0:

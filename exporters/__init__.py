@@ -11,9 +11,9 @@ def cli_export(opts) -> int:
     [--static-classes a,b | --dynamic-all]`."""
     import sys
 
-    import psimap
     from psimap.exporters.pipeline import export_scene
     from psimap.io_utils import check_output_dir
+    from psimap.scene import load_scene
 
     check_output_dir(opts.out, "export", overwrite=getattr(opts, "overwrite", False), what="--out")
 
@@ -29,7 +29,7 @@ def cli_export(opts) -> int:
     if getattr(opts, "dynamic_all", False):
         kw["min_rigid_surfels"] = 0
     kw["pin_unstable"] = not (getattr(opts, "no_pin_unstable", False) or getattr(opts, "dynamic_all", False))
-    scene = psimap.load(opts.ckpt)
+    scene = load_scene(opts.ckpt)
     report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
                           check=not opts.no_check, progress=sys.stderr.isatty(),
                           overwrite=getattr(opts, "overwrite", False), **kw)

@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from psimap.transforms import sample_surface
+
 MAX_HULL_VERTICES = 64
 
 
@@ -42,12 +44,6 @@ def default_tolerance(mesh, relative: float = 0.03, floor: float = 0.003) -> flo
 
 
 # ---------------------------------------------------------------- distances
-def _mesh_points(mesh, n: int, seed: int) -> np.ndarray:
-    from psimap.exporters.decimate import _sample
-
-    return _sample(mesh, n, seed)
-
-
 def _primitive_sdf(kind: str, size: np.ndarray, transform: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Unsigned distance of world points [P, 3] to the primitive's surface."""
     local = (pts - transform[:3, 3]) @ transform[:3, :3]
@@ -275,13 +271,13 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
     # fell: larger objects get proportionally more faces and time
     scale = float(np.clip(np.linalg.norm(mesh.extents) / BUDGET_DIAGONAL, 1.0, 4.0))
     time_budget *= scale
-    from psimap.exporters.decimate import _dist_to
+    from psimap.exporters.decimate import distance_to_surface
 
     tol = default_tolerance(mesh) if tolerance is None else float(tolerance)
-    mesh_pts = _mesh_points(mesh, samples, seed)
+    mesh_pts = sample_surface(mesh, samples, seed, with_vertices=True)
 
     def mesh_dist(p):
-        return _dist_to(mesh, p)
+        return distance_to_surface(mesh, p)
 
     if allow_primitives:
         best = None
@@ -289,7 +285,7 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
             if not np.all(np.isfinite(size)) or np.any(size <= 0):
                 continue
             pm = primitive_mesh(kind, size, T)
-            err = _two_sided(mesh_pts, _mesh_points(pm, samples, seed + 1), mesh_dist,
+            err = _two_sided(mesh_pts, sample_surface(pm, samples, seed + 1, with_vertices=True), mesh_dist,
                              lambda p: _primitive_sdf(kind, size, T, p))
             vol = float(pm.volume)
             if obstacles and err <= tol and penetrates([pm], obstacles, max_penetration):
@@ -304,7 +300,7 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
         # collider surface = union surface: a part's samples inside another part are interior
         union = []
         for i, p in enumerate(parts):
-            pts = _mesh_points(p, max(200, samples // len(parts)), seed + 2 + i)
+            pts = sample_surface(p, max(200, samples // len(parts)), seed + 2 + i, with_vertices=True)
             for j, q in enumerate(parts):
                 if j != i:
                     pts = pts[~_inside_convex(q, pts, 1e-5)]   # shared faces are interior
@@ -312,7 +308,7 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
         union_pts = np.concatenate(union)
         d = np.full(len(mesh_pts), np.inf)
         for p in parts:
-            d = np.minimum(d, _dist_to(p, mesh_pts))
+            d = np.minimum(d, distance_to_surface(p, mesh_pts))
         if len(parts) > 1:          # mesh points inside the union are covered
             inside = np.zeros(len(mesh_pts), bool)
             for p in parts:

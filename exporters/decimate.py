@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from psimap.transforms import sample_surface
+
 DEFAULT_SAMPLES = 10_000
 
 
@@ -38,27 +40,13 @@ def surface_distance(a, b, samples: int = DEFAULT_SAMPLES, seed: int = 0) -> tup
 
     a, b: trimesh.Trimesh. Deterministic for a fixed seed.
     """
-    da = _dist_to(b, _sample(a, samples, seed))
-    db = _dist_to(a, _sample(b, samples, seed + 1))
+    da = distance_to_surface(b, sample_surface(a, samples, seed, with_vertices=True))
+    db = distance_to_surface(a, sample_surface(b, samples, seed + 1, with_vertices=True))
     return float(max(da.max(), db.max())), float(0.5 * (da.mean() + db.mean()))
 
 
-def _sample(mesh, n: int, seed: int) -> np.ndarray:
-    """[n, 3] area-weighted surface samples plus all vertices (so corners are never missed)."""
-    rng = np.random.default_rng(seed)
-    tri = np.asarray(mesh.triangles, np.float64)                   # [F, 3, 3]
-    area = np.asarray(mesh.area_faces, np.float64)
-    if area.sum() <= 0:
-        return np.asarray(mesh.vertices, np.float64)
-    idx = rng.choice(len(tri), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)             # uniform barycentrics
-    pts = np.einsum("nk,nkd->nd", w, tri[idx])
-    return np.concatenate([pts, np.asarray(mesh.vertices, np.float64)])
-
-
-def _dist_to(mesh, points: np.ndarray) -> np.ndarray:
+def distance_to_surface(mesh, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance [P] float64 of points [P, 3] to the triangles of `mesh` (Open3D, float32)."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -125,7 +113,7 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
     best = DecimationResult(mesh, n0, n0, 0.0, 0.0, budget)
     if n0 <= min_faces:
         return best
-    ref_pts = _sample(mesh, samples, seed)
+    ref_pts = sample_surface(mesh, samples, seed, with_vertices=True)
     curve = []
 
     method = "auto"
@@ -139,8 +127,8 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
             method = "fast" if fast_ok else "meshlab"
         if len(cand.faces) == 0 or (watertight and not cand.is_watertight):
             return cand, np.inf, np.inf
-        d1 = _dist_to(cand, ref_pts)
-        d2 = _dist_to(mesh, _sample(cand, samples, seed + 1))
+        d1 = distance_to_surface(cand, ref_pts)
+        d2 = distance_to_surface(mesh, sample_surface(cand, samples, seed + 1, with_vertices=True))
         h, m = float(max(d1.max(), d2.max())), float(0.5 * (d1.mean() + d2.mean()))
         curve.append((int(len(cand.faces)), h, m))
         return cand, h, m

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from psimap.transforms import quat_to_rotmat, scale_intrinsics, transform_points
+
 # pixels seen by less than this much surfel coverage are unknown, not free space
 MIN_ALPHA = 0.5
 # an instance seen on fewer pixels than this in a view adds nothing but noise to its fusion
@@ -192,16 +194,13 @@ def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float
     for v in views:
         h, w = v.depth.shape
         cam = np.linalg.inv(v.c2w)
-        pc = means.numpy().astype(np.float64) @ cam[:3, :3].T + cam[:3, 3]
+        pc = transform_points(means.numpy().astype(np.float64), cam)
         z = pc[:, 2][pc[:, 2] > 1e-3]
         if len(z) == 0:
             continue
         footprint = float(np.median(z)) / float(v.K[0, 0])
         scale = min(max(1.0, px_per_voxel * footprint / voxel), max_side / max(h, w))
-        K = np.array(v.K, np.float64).copy()
-        K[:2] *= scale
-        K[0, 2] += 0.5 * (scale - 1)    # pixel centres stay aligned: (u + 0.5) scales
-        K[1, 2] += 0.5 * (scale - 1)
+        K = scale_intrinsics(v.K, scale)
         W, H = int(round(w * scale)), int(round(h * scale))
         with torch.no_grad():
             out = rasterize(means, surfels["quats"], surfels["scales"], surfels["opacities"], surfels["colors"],
@@ -226,10 +225,7 @@ def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float
 
 def surfel_normals(quats) -> np.ndarray:
     """[n, 3] unit normals (local z axis) of surfels with quaternions quats [n, 4] (w, x, y, z)."""
-    q = np.asarray(quats.detach() if hasattr(quats, "detach") else quats, np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12)
-    w, x, y, z = q.T
-    return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=1)
+    return quat_to_rotmat(quats.detach() if hasattr(quats, "detach") else quats)[:, :, 2]
 
 
 def project_to_surfels(mesh, centres: np.ndarray, normals: np.ndarray, k: int = 6):

@@ -14,18 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
+from psimap.transforms import rotmat_to_quat
+
 
 def _f(x) -> str:
     """Deterministic compact float text."""
     return " ".join(f"{float(v):.9g}" for v in np.atleast_1d(x))
-
-
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(R).as_quat()   # x y z w
-    q = np.array([q[3], q[0], q[1], q[2]])
-    return q if q[0] >= 0 else -q
 
 
 def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float | None = None,
@@ -90,7 +84,7 @@ def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float 
         body = ET.SubElement(world, "body", name=o.name, pos=_f(com))
         if not o.fixed:     # a fixed object is welded to the world: no joint, its mass never enters
             ET.SubElement(body, "freejoint", name=f"{o.name}_joint")
-            ET.SubElement(body, "inertial", pos="0 0 0", quat=_f(_quat_wxyz(ph.principal_axes)),
+            ET.SubElement(body, "inertial", pos="0 0 0", quat=_f(rotmat_to_quat(ph.principal_axes)),
                           mass=_f(ph.mass), diaginertia=_f(_balanced(ph.principal_inertia)))
         attrs = visual_assets(o, com)
         ET.SubElement(body, "geom", name=f"{o.name}_visual", group="2", contype="0", conaffinity="0",
@@ -101,7 +95,7 @@ def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float 
             T = np.asarray(c.transform, np.float64)
             size = np.asarray(c.size, np.float64)
             ET.SubElement(body, "geom", name=f"{o.name}_collision_0", type=c.kind, size=_f(size),
-                          pos=_f(T[:3, 3] - com), quat=_f(_quat_wxyz(T[:3, :3])), group="3",
+                          pos=_f(T[:3, 3] - com), quat=_f(rotmat_to_quat(T[:3, :3])), group="3",
                           density="0", friction=fr, rgba="0.2 0.6 0.9 0.4")
         else:
             for k, part in enumerate(c.parts):

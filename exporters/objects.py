@@ -369,11 +369,8 @@ def _texture(obj: SceneObject, m, views, source_textured, vertex_rgb, original, 
             "mesh", 1.0
     elif fb is not None:
         rows, cols, fid, bary = T.rasterize_uv(f, uv, size)
-        img = np.zeros((size, size, 3))
-        filled = np.zeros((size, size), bool)
-        img[rows, cols] = np.einsum("pk,pkd->pd", bary, fb[f[fid]])
-        filled[rows, cols] = True
-        obj.texture, obj.texture_source = T._to_uint8(T._dilate(img, filled)), "vertex"
+        colors = np.einsum("pk,pkd->pd", bary, fb[f[fid]])
+        obj.texture, obj.texture_source = T.texel_image(rows, cols, colors, size), "vertex"
     obj.mesh = m
     obj.visual_mesh = trimesh.Trimesh(v, f, process=False)
     obj.uv = uv if obj.texture is not None else None

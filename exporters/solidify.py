@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from psimap.transforms import quat_to_rotmat, sample_surface
+
 # cells per axis: enough to keep a cm-sized handle at 10-20 cm objects, bounded so a room-sized
 # instance costs no more than ~2 M cells
 MIN_CELLS = 48
@@ -224,11 +226,8 @@ def disc_points(means, quats, scales, opacities=None, min_opacity: float = 0.5) 
     """[5n, 3] points on surfel discs: centres and the ends of both tangent axes at one scale.
 
     means [n, 3], quats [n, 4] (w, x, y, z), scales [n, 2] (metres), opacities [n]."""
-    q = np.asarray(quats, np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12)
-    w, x, y, z = q.T
-    t1 = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], axis=1)
-    t2 = np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], axis=1)
+    R = quat_to_rotmat(quats)
+    t1, t2 = R[:, :, 0], R[:, :, 1]
     m = np.asarray(means, np.float64)
     s = np.asarray(scales, np.float64)
     keep = np.ones(len(m), bool) if opacities is None else np.asarray(opacities, np.float64) >= min_opacity
@@ -239,14 +238,5 @@ def disc_points(means, quats, scales, opacities=None, min_opacity: float = 0.5) 
 
 def _surface_points(mesh, spacing: float) -> np.ndarray:
     """Surface samples [P, 3] about `spacing` apart (plus the vertices), capped at 400 k points."""
-    tri = np.asarray(mesh.triangles, np.float64)
-    area = np.asarray(mesh.area_faces, np.float64)
-    n = int(min(400_000, max(1000, area.sum() / spacing ** 2)))
-    rng = np.random.default_rng(0)
-    if area.sum() <= 0:
-        return np.asarray(mesh.vertices, np.float64)
-    f = rng.choice(len(tri), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
-    return np.concatenate([np.einsum("nk,nkd->nd", w, tri[f]), np.asarray(mesh.vertices, np.float64)])
+    n = int(min(400_000, max(1000, np.asarray(mesh.area_faces, np.float64).sum() / spacing ** 2)))
+    return sample_surface(mesh, n, seed=0, with_vertices=True)

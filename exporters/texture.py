@@ -131,6 +131,12 @@ def bake_from_mesh(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, sour
     else:
         vc = np.asarray(source.visual.to_color().vertex_colors, np.float64)[:, :3] / 255.0
         colors = np.einsum("pk,pkd->pd", src_bary, vc[source.faces[tri]])
+    return texel_image(rows, cols, colors, size)
+
+
+def texel_image(rows: np.ndarray, cols: np.ndarray, colors: np.ndarray, size: int) -> np.ndarray:
+    """uint8 [size, size, 3] atlas holding colors [P, 3] (float in [0, 1]) at texels (rows [P],
+    cols [P]), with the seams dilated into the empty texels."""
     img = np.zeros((size, size, 3))
     filled = np.zeros((size, size), bool)
     img[rows, cols] = colors

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from psimap.transforms import rotmat_to_quat
+
 
 def _vt():
     from pxr import Gf, Vt
@@ -144,7 +146,7 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
             mass.CreateMassAttr(float(ph.mass))
             mass.CreateCenterOfMassAttr(Gf.Vec3f(0, 0, 0))
             mass.CreateDiagonalInertiaAttr(Gf.Vec3f(*[float(v) for v in ph.principal_inertia]))
-            q = _quat(ph.principal_axes)
+            q = rotmat_to_quat(ph.principal_axes)
             mass.CreatePrincipalAxesAttr(Gf.Quatf(float(q[0]), float(q[1]), float(q[2]), float(q[3])))
         label(prim, o)
         base = f"/World/{o.name}"
@@ -153,7 +155,7 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
         if c.is_primitive:
             T = np.asarray(c.transform, np.float64)
             local = T[:3, 3] - np.asarray(ph.com, np.float64)
-            qc = _quat(T[:3, :3])
+            qc = rotmat_to_quat(T[:3, :3])
             if c.kind == "sphere":
                 g = UsdGeom.Sphere.Define(stage, f"{base}/collision_0")
                 g.CreateRadiusAttr(float(c.size[0]))
@@ -193,14 +195,6 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
                     pmat, UsdShade.Tokens.weakerThanDescendants, "physics")
     stage.GetRootLayer().Save()
     return path
-
-
-def _quat(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()
-    q = np.array([q[3], q[0], q[1], q[2]])
-    return q if q[0] >= 0 else -q
 
 
 def validate_usd(path: str | Path) -> dict:

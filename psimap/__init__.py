@@ -16,13 +16,14 @@ class PsimapError(Exception):
 
 
 def load(path):
-    """Load a trained scene checkpoint (`scene.ckpt`) as a :class:`psimap.scene.Scene`.
+    """Load a trained scene checkpoint (`scene.ckpt`) as a :class:`psimap.api.Scene` (a
+    :class:`psimap.scene.Scene` with `objects()`).
 
     Never unpickles code: checkpoints are read with ``torch.load(weights_only=True)``.
     """
-    from psimap.scene import load_scene
+    from psimap.api import Scene
 
-    return load_scene(path)
+    return Scene.load(path)
 
 
 __all__ = ["PsimapError", "load", "__version__"]

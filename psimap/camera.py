@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from psimap.transforms import camera_to_pixels, scale_intrinsics, transform_points
+
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world [4, 4] (OpenCV axes) at `eye` looking at `target`.
@@ -33,18 +35,15 @@ def orbit(n: int, radius: float, height: float, target=(0.0, 0.0, 0.0)) -> list[
 def supersample_intrinsics(K, ss: int) -> np.ndarray:
     """K [3, 3] of an image with ss x ss samples per pixel of the image K describes.
 
-    Pixel centres are integers (OpenCV), so the samples of pixel x sit at x + (i + 0.5) / ss - 0.5,
-    i.e. at X = ss x + (ss - 1) / 2 in the fine image. ss must be a positive integer (PsimapError).
+    With pixel centres at integers (OpenCV, psimap.transforms.PIXEL_CENTER) the samples of pixel x
+    sit at x + (i + 0.5) / ss - 0.5, i.e. at X = ss x + (ss - 1) / 2 in the fine image. ss must be
+    a positive integer (PsimapError).
     """
     from psimap import PsimapError
 
     if int(ss) != ss or ss < 1:
         raise PsimapError(f"supersample must be a positive integer, got {ss}")
-    ss = int(ss)
-    K = np.array(K, dtype=np.float64)
-    K[:2, :] *= ss
-    K[:2, 2] += 0.5 * (ss - 1)
-    return K
+    return scale_intrinsics(K, int(ss))
 
 
 def nearest_pixels(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, width: int, height: int,
@@ -52,12 +51,10 @@ def nearest_pixels(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, width: in
     """Project world points [P, 3] into a pinhole view (K [3, 3], c2w [4, 4] OpenCV camera-to-world):
     (u [P], v [P]) int64 nearest pixel, clipped into the image so it can index it; z [P] camera
     depth; inside [P] bool: in front (z > near) and within the image before clipping."""
-    w2c = np.linalg.inv(np.asarray(c2w, np.float64))
-    pc = np.asarray(points, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    pc = transform_points(np.asarray(points, np.float64), np.linalg.inv(np.asarray(c2w, np.float64)))
     z = pc[:, 2]
     front = z > near
-    zs = np.where(front, z, 1.0)
-    u = np.round(K[0, 0] * pc[:, 0] / zs + K[0, 2]).astype(np.int64)
-    v = np.round(K[1, 1] * pc[:, 1] / zs + K[1, 2]).astype(np.int64)
+    u, v = camera_to_pixels(pc[:, 0], pc[:, 1], np.where(front, z, 1.0), K)
+    u, v = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
     inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
     return u.clip(0, width - 1), v.clip(0, height - 1), z, inside

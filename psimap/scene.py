@@ -1,4 +1,7 @@
-"""A trained scene: surfels + class table + cameras, as loaded from `scene.ckpt` (`psimap.load`).
+"""A trained scene: surfels + class table + cameras, as loaded from `scene.ckpt` (`load_scene`).
+
+Every stage from training on passes this value around; the users' `psimap.load` returns the
+subclass `psimap.api.Scene`, which adds the export stage's `objects()`.
 
 Also `scene_from_meshes`: surfels sampled on given meshes with hard labels, so later stages (export,
 completion, sim) can be tested on exact geometry independently of training quality.
@@ -11,6 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from psimap import PsimapError
+from psimap.transforms import rotmat_to_quat
 
 # Rays per pixel side when meshing the rendered views. Measured on the demo scene (seed 0, 450
 # steps): ss 1 / 2 / 3 -> Chamfer-L1 1.66 / 1.30 / 1.20 cm, F1@5cm 0.958 / 0.965 / 0.965, rendering +
@@ -36,6 +40,13 @@ class Scene:
                             metrics=metrics)
         self._set_state(state)
         self.path = path
+
+    @classmethod
+    def load(cls, path) -> "Scene":
+        """Read `scene.ckpt` (never unpickles code); PsimapError for a bad file."""
+        from psimap.checkpoint import load_checkpoint
+
+        return cls.from_state(load_checkpoint(path), path=str(path))
 
     @classmethod
     def from_state(cls, state: dict, path: str | None = None) -> "Scene":
@@ -218,18 +229,10 @@ class Scene:
                          min_component_voxels=(SCENE_MIN_COMPONENT_VOXELS if min_component_voxels is None
                                                else min_component_voxels), progress=progress)
 
-    def objects(self, **kw):
-        """Per-object meshes (`psimap.exporters.objects.extract_objects(scene, **kw)`)."""
-        from psimap.exporters.objects import extract_objects
-
-        return extract_objects(self, **kw)
-
 
 def load_scene(path) -> Scene:
     """Read `scene.ckpt` (never unpickles code); PsimapError for a bad file."""
-    from psimap.checkpoint import load_checkpoint
-
-    return Scene.from_state(load_checkpoint(path), path=str(path))
+    return Scene.load(path)
 
 
 def frame_from_normal(normals):
@@ -243,16 +246,6 @@ def frame_from_normal(normals):
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(n, t1)
     return np.stack([t1, t2, n], axis=2)
-
-
-def matrix_to_quat(R):
-    """Rotation matrices [N,3,3] -> unit quaternions [N,4] (w, x, y, z), w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()   # x, y, z, w
-    q = np.concatenate([q[:, 3:], q[:, :3]], 1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q
 
 
 def _pixel_spacing(meshes, cameras) -> float | None:
@@ -315,7 +308,7 @@ def scene_from_meshes(meshes: Sequence, instance_ids: Sequence[int], semantic_id
         parts["iid"].append(np.full(len(pts), int(instance_ids[j])))
         parts["sid"].append(np.full(len(pts), int(semantic_ids[j])))
     means = np.concatenate(parts["means"])
-    quats = matrix_to_quat(frame_from_normal(np.concatenate(parts["normals"])))
+    quats = rotmat_to_quat(frame_from_normal(np.concatenate(parts["normals"])))
     n = len(means)
     # Gaussian sigma ~ 0.6 spacing: neighbours overlap enough that the rendered surface has no holes
     scales = np.full((n, 2), 0.6 * spacing)

@@ -16,10 +16,10 @@ def single_threaded():
     """Run the block with one torch intra-op thread and one native-kernel thread; restore after."""
     import torch
 
-    from psimap.render.api import _native_available
+    from psimap.render.api import native_available
 
     native = None
-    if _native_available():
+    if native_available():
         from psimap.render import native
     t0 = torch.get_num_threads()
     n0 = native.get_num_threads() if native is not None else None

@@ -192,14 +192,14 @@ def test_view_texel_is_half_the_finest_pixel_footprint():
 def test_failed_check_gives_nonzero_exit_with_report(tmp_path, monkeypatch, capsys):
     from types import SimpleNamespace
 
-    import psimap
+    import psimap.scene
     import psimap.exporters.pipeline as pipeline
     from psimap.exporters import cli_export
     from psimap.exporters.objects import build_object
 
     box = build_object(_box([0.1, 0.1, 0.1], [0, 0, 0.3]), "box", 1, completion="none")   # floating
     ground = build_object(_box([0.1, 0.1, 0.1], [1, 0, 0.05]), "box", 2, completion="none")  # on the floor
-    monkeypatch.setattr(psimap, "load", lambda path: "scene")
+    monkeypatch.setattr(psimap.scene, "load_scene", lambda path: "scene")
     real = pipeline.export_scene
 
     def export_objects(scene, out, fmt, **kw):     # the objects above instead of a checkpoint's

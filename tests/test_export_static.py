@@ -96,7 +96,7 @@ def test_override_makes_everything_dynamic(objects, tmp_path):
                                           (["--static-classes", "none"], set()),
                                           (["--static-classes", "mug,shelf"], {"mug", "shelf"})])
 def test_cli_static_flags_reach_export(monkeypatch, tmp_path, args, expect):
-    import psimap
+    import psimap.scene
     from psimap.cli import main
     from psimap.exporters import pipeline
     from psimap.exporters.physics import STATIC_CLASSES
@@ -107,7 +107,7 @@ def test_cli_static_flags_reach_export(monkeypatch, tmp_path, args, expect):
         seen.update(kw)
         return {"objects": [], "skipped": [], "check": None, "timings": {}}
 
-    monkeypatch.setattr(psimap, "load", lambda path: object())
+    monkeypatch.setattr(psimap.scene, "load_scene", lambda path: object())   # the CLI loads with it
     monkeypatch.setattr(pipeline, "export_scene", fake_export)
     assert main(["export", str(tmp_path / "x.ckpt"), "--out", str(tmp_path / "o"), *args]) == 0
     assert set(seen["static_classes"]) == (set(STATIC_CLASSES) if expect == "default" else expect)

@@ -89,15 +89,15 @@ def test_fit_is_deterministic_whatever_the_global_rng_and_thread_count():
     """The same seed gives the same field whatever ran before in the process (torch's global RNG
     state) and however many native-kernel threads render: the attention projections used to be
     drawn from the global RNG, so a benchmark's 15 % run scored differently after its 0 % run."""
-    from psimap.render.api import _native_available
+    from psimap.render.api import native_available
 
     s, frames, _ = _two_box_scene(n_frames=6)
     cfg = PanopticConfig(init_frames=3, adjust_start=20, adjust_every=20, pixels_per_step=2048)
     states = []
-    threads = [1, 2] if _native_available() else [1, 1]
+    threads = [1, 2] if native_available() else [1, 1]
     for global_seed, n_threads in zip((3, 11), threads):
         torch.manual_seed(global_seed)
-        if _native_available():
+        if native_available():
             from psimap.render import native
 
             n0 = native.get_num_threads()
@@ -105,7 +105,7 @@ def test_fit_is_deterministic_whatever_the_global_rng_and_thread_count():
         try:
             states.append(fit_panoptic(s, frames, CLASSES, iters=30, cfg=cfg, seed=4, backend="auto"))
         finally:
-            if _native_available():
+            if native_available():
                 native.set_num_threads(n0)
     a, b = states
     assert torch.equal(a["surfels"]["instance"], b["surfels"]["instance"])

@@ -8,7 +8,7 @@ import torch
 
 from psimap import PsimapError
 from psimap.render import project_surfels, rasterize
-from psimap.render.project import quat_to_rotmat
+from psimap.transforms import quat_to_rotmat_torch
 
 W, H = 32, 24
 OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion", "features")
@@ -82,7 +82,7 @@ def test_tilted_surfel_hit_depth_and_falloff_are_exact():
     scale = torch.tensor([0.5, 0.35], dtype=torch.float64)
     m, q, s, o, c = surfels(mean, quats=quat, scales=scale, opacities=[0.6])
     out = rasterize(m, q, s, o, c, viewmat, K, W, H)
-    R = quat_to_rotmat(quat[None])[0]
+    R = quat_to_rotmat_torch(quat[None])[0]
     tu, tv, n = R[:, 0], R[:, 1], R[:, 2]
     checked = 0
     for py in range(0, H, 3):

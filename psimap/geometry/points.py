@@ -11,6 +11,7 @@ from typing import Iterable
 import numpy as np
 
 from psimap import PsimapError
+from psimap.transforms import depth_to_world
 
 # ITU-R BT.601 luma weights: the usual grey conversion of an sRGB image.
 _GREY = np.array([0.299, 0.587, 0.114], dtype=np.float32)
@@ -38,26 +39,14 @@ def backproject_frame(rgb: np.ndarray | None, depth: np.ndarray, K: np.ndarray, 
     c2w = np.asarray(c2w, dtype=np.float64)
     if K.shape != (3, 3) or c2w.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(c2w).all()):
         raise PsimapError("camera intrinsics must be a finite [3, 3] and the pose a finite [4, 4] matrix")
-    d = depth[::stride, ::stride].astype(np.float64)
-    valid = np.isfinite(d) & (d > 0)
-    if max_depth is not None:
-        valid &= d <= max_depth
-    v, u = np.nonzero(valid)
-    z = d[v, u]
-    # pixel centres of the strided grid in full-resolution pixel units
-    px = u * stride + 0.0
-    py = v * stride + 0.0
-    x = (px - K[0, 2]) / K[0, 0] * z
-    y = (py - K[1, 2]) / K[1, 1] * z
-    cam = np.stack([x, y, z], axis=1)
-    world = cam @ c2w[:3, :3].T + c2w[:3, 3]
+    world, v, u = depth_to_world(depth, K, c2w, stride=stride, max_depth=max_depth)
     if rgb is None:
-        grey = np.full(len(z), 0.5, dtype=np.float32)
+        grey = np.full(len(world), 0.5, dtype=np.float32)
     else:
         img = np.asarray(rgb)
         if img.shape[:2] != depth.shape:
             raise PsimapError(f"colour image {img.shape[:2]} and depth {depth.shape} differ in size")
-        img = img[::stride, ::stride][v, u, :3].astype(np.float32)
+        img = img[v, u, :3].astype(np.float32)
         if np.asarray(rgb).dtype == np.uint8:
             img /= 255.0
         grey = np.clip(img @ _GREY, 0.0, 1.0)

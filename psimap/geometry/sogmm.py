@@ -23,6 +23,7 @@ import numpy as np
 
 from psimap import PsimapError
 from psimap.geometry.points import drop_nonfinite, voxel_downsample
+from psimap.transforms import rotmat_to_quat
 
 # Auto voxel keeps at most this many points after downsampling: it bounds fit time on big clouds.
 _AUTO_MAX_POINTS = 250_000
@@ -455,40 +456,6 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
 # surfel initialisation
 
 
-def _matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """[S, 3, 3] rotations -> [S, 4] unit quaternions (w, x, y, z), w >= 0. Uses the largest of the
-    four squared components as pivot so no branch divides by a small number."""
-    m = R
-    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
-    piv = np.argmax(cand, axis=1)
-    q = np.empty((len(R), 4))
-    for p in range(4):
-        sel = piv == p
-        if not sel.any():
-            continue
-        r = m[sel]
-        if p == 0:
-            s = 2.0 * np.sqrt(1.0 + r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2])
-            q[sel] = np.stack([0.25 * s, (r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s,
-                               (r[:, 1, 0] - r[:, 0, 1]) / s], axis=1)
-        elif p == 1:
-            s = 2.0 * np.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2])
-            q[sel] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, 0.25 * s, (r[:, 0, 1] + r[:, 1, 0]) / s,
-                               (r[:, 0, 2] + r[:, 2, 0]) / s], axis=1)
-        elif p == 2:
-            s = 2.0 * np.sqrt(1.0 + r[:, 1, 1] - r[:, 0, 0] - r[:, 2, 2])
-            q[sel] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 0, 1] + r[:, 1, 0]) / s, 0.25 * s,
-                               (r[:, 1, 2] + r[:, 2, 1]) / s], axis=1)
-        else:
-            s = 2.0 * np.sqrt(1.0 + r[:, 2, 2] - r[:, 0, 0] - r[:, 1, 1])
-            q[sel] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s,
-                               (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], axis=1)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q[q[:, 0] < 0] *= -1.0
-    return q
-
-
 def _allocate(areas: np.ndarray, n_total: int) -> np.ndarray:
     """Integer counts summing to n_total, proportional to areas (largest remainder)."""
     if n_total <= 0 or areas.sum() <= 0:
@@ -528,7 +495,7 @@ def sample_surfels(sogmm: SOGMM, n_total: int | None = None, *, density: float |
     t = sogmm.tangents[comp]                              # [S, 2, 3]
     means = sogmm.means[comp, :3] + uv[:, :1] * t[:, 0] + uv[:, 1:] * t[:, 1]
     R = np.stack([t[:, 0], t[:, 1], sogmm.normals[comp]], axis=2)   # columns: t_u, t_v, n
-    quats = _matrix_to_quat_wxyz(R)
+    quats = rotmat_to_quat(R)
     spacing = side[comp] / np.sqrt(np.maximum(per[comp], 1))[:, None]
     floor = 1e-6 * max(float(np.abs(sogmm.means[:, :3]).max()) if sogmm.K else 1.0, 1.0)
     scales = np.maximum(0.5 * spacing, floor)

@@ -13,6 +13,7 @@ from typing import Sequence
 import numpy as np
 
 from psimap import PsimapError
+from psimap.transforms import depth_to_world
 
 
 @dataclass
@@ -30,19 +31,6 @@ def _pixel_footprint(depth: np.ndarray, K: np.ndarray) -> float:
     return float(np.median(valid)) / float(0.5 * (K[0, 0] + K[1, 1]))
 
 
-def _backproject_sample(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, step: int) -> np.ndarray:
-    """World points [P, 3] of every `step`-th valid pixel."""
-    d = depth[::step, ::step]
-    v, u = np.nonzero(d > 0)
-    if v.size == 0:
-        return np.zeros((0, 3))
-    z = d[v, u].astype(np.float64)
-    x = (u * step - K[0, 2]) / K[0, 0] * z
-    y = (v * step - K[1, 2]) / K[1, 1] * z
-    pc = np.stack([x, y, z], 1)
-    return pc @ c2w[:3, :3].T + c2w[:3, 3]
-
-
 def derive_params(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequence[np.ndarray], *,
                   voxel_size: float | None = None, trunc: float | None = None,
                   depth_max: float | None = None) -> TSDFParams:
@@ -58,7 +46,7 @@ def derive_params(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: 
         if not np.any(d > 0):
             continue
         foot.append(_pixel_footprint(d, K))
-        pts.append(_backproject_sample(d, K, c2w, max(1, min(d.shape) // 32)))
+        pts.append(depth_to_world(d, K, c2w, stride=max(1, min(d.shape) // 32))[0])
         all_d.append(d[d > 0][:: max(1, int(np.count_nonzero(d > 0)) // 2000)])
     if not foot:
         raise PsimapError("TSDF fusion: no frame has valid depth")

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from psimap import PsimapError
+from psimap.transforms import transform_points
 
 # A camera: (K [3,3], c2w [4,4] OpenCV camera-to-world, width, height).
 Camera = tuple
@@ -156,8 +157,7 @@ class CameraVisibility:
             if todo.size == 0:
                 break
             K, c2w, w, h = self.cameras[i]
-            w2c = np.linalg.inv(c2w)
-            pc = points[todo] @ w2c[:3, :3].T + w2c[:3, 3]
+            pc = transform_points(points[todo], np.linalg.inv(c2w))
             z = pc[:, 2]
             front = z > 1e-9
             zs = np.where(front, z, 1.0)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from psimap import PsimapError
+from psimap.transforms import depth_to_world
 
 
 @dataclass
@@ -34,13 +35,6 @@ class BaselineConfig:
 def _thing_ids(classes) -> set[int]:
     return {int(c["id"] if isinstance(c, dict) else c.id) for c in classes
             if (c["isthing"] if isinstance(c, dict) else c.isthing)}
-
-
-def _backproject(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-    """World points [P, 3] of pixels (ys, xs) with their depth (pixel centres at integer coordinates)."""
-    z = depth[ys, xs].astype(np.float64)
-    pc = np.stack([(xs - K[0, 2]) / K[0, 0] * z, (ys - K[1, 2]) / K[1, 1] * z, z], 1)
-    return pc @ c2w[:3, :3].T + c2w[:3, 3]
 
 
 def _voxel_size(frames) -> float:
@@ -136,12 +130,10 @@ def baseline_panoptic(means, frames, classes, cfg: BaselineConfig | None = None,
     for i in tqdm(range(len(frames)), desc="baseline", unit="frame", disable=not progress):
         f = frames[i]
         depth = np.asarray(f.depth, dtype=np.float64)
-        valid = np.isfinite(depth) & (depth > 0)
-        if not valid.any():
+        points, ys, xs = depth_to_world(depth, f.K, f.c2w)
+        if len(points) == 0:
             continue
-        ys, xs = np.nonzero(valid)
-        keys = _keys(np.floor(_backproject(depth, np.asarray(f.K, float), np.asarray(f.c2w, float), ys, xs)
-                              / voxel))
+        keys = _keys(np.floor(points / voxel))
         sem = np.zeros(len(ys), np.int64) if f.semantic is None else np.asarray(f.semantic, np.int64)[ys, xs]
         inst = np.zeros(len(ys), np.int64) if f.instance is None else np.asarray(f.instance, np.int64)[ys, xs]
         labelled = sem > 0

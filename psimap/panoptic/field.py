@@ -19,6 +19,7 @@ from psimap import PsimapError
 from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, useless_queries
 from psimap.panoptic.matching import hungarian_match, mask_windows, masks_from_ids, matched_mask_loss
 from psimap.panoptic.queries import InstanceQueries, init_from_points
+from psimap.transforms import pixels_to_camera_torch, transform_points
 
 
 @dataclass
@@ -130,10 +131,7 @@ def backproject(depth: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, mask: t
     if trim and z.numel() >= 3:
         keep = front_layer(z)
         ys, xs, z = ys[keep], xs[keep], z[keep]
-    x = (xs.double() - K[0, 2]) / K[0, 0] * z
-    y = (ys.double() - K[1, 2]) / K[1, 1] * z
-    pc = torch.stack([x, y, z], -1)
-    return (pc @ c2w[:3, :3].T.double() + c2w[:3, 3].double()).float()
+    return transform_points(pixels_to_camera_torch(xs.double(), ys.double(), z, K), c2w.double()).float()
 
 
 def front_layer(z: torch.Tensor, k: float = 3.0, floor: float = 0.02) -> torch.Tensor:

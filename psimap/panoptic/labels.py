@@ -219,15 +219,14 @@ def has_labels(scene) -> bool:
 
 def cli_labels(opts) -> int:
     """`psimap labels scene.ckpt DATA --out DIR [--topk K]`."""
-    import psimap
-
     from psimap.io_utils import check_output_dir
+    from psimap.scene import load_scene
 
     ckpt = Path(opts.ckpt)
     if not ckpt.is_file():
         raise PsimapError(f"no such checkpoint: {ckpt}")
     check_output_dir(opts.out, "labels", overwrite=opts.overwrite, what="--out")
-    scene = psimap.load(ckpt)
+    scene = load_scene(ckpt)
     if not has_labels(scene):
         raise PsimapError(f"{ckpt}: the checkpoint has no panoptic labels (train with the panoptic field)")
     if opts.topk < 0:

@@ -4,7 +4,8 @@
 """
 from __future__ import annotations
 
-from psimap.render.api import RenderOutput, rasterize
+from psimap.render.api import rasterize
+from psimap.render.output import RenderOutput
 from psimap.render.project import Projected, project_surfels
 
 __all__ = ["rasterize", "RenderOutput", "project_surfels", "Projected"]

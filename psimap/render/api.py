@@ -1,33 +1,13 @@
 """The public entry point `rasterize(...)`: validate inputs, project (stage 1), dispatch a backend."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import torch
 
 from psimap import PsimapError
+from psimap.render.output import RenderOutput
 
 BACKENDS = ("reference", "native", "auto")
 TILE_MODES = ("precise", "circle")
-
-
-@dataclass
-class RenderOutput:
-    """Rendered maps of one view (H x W); every tensor is differentiable.
-
-    rgb [H, W, 3], alpha [H, W], depth [H, W] (expected hit depth, normalised by alpha),
-    median_depth [H, W], normal [H, W, 3] (camera frame, camera-facing, alpha-weighted sum),
-    distortion [H, W], features [H, W, C]; stats: tile_pairs, pairs_per_tile, evaluated, culled, ...
-    """
-
-    rgb: torch.Tensor
-    alpha: torch.Tensor
-    depth: torch.Tensor
-    median_depth: torch.Tensor
-    normal: torch.Tensor
-    distortion: torch.Tensor
-    features: torch.Tensor
-    stats: dict = field(default_factory=dict)
 
 
 def _check(name: str, t, shape: tuple, n: int | None = None) -> None:
@@ -45,7 +25,8 @@ def _check(name: str, t, shape: tuple, n: int | None = None) -> None:
         raise ValueError(f"rasterize: {name} contains {bad} NaN/inf value(s)")
 
 
-def _native_available() -> bool:
+def native_available() -> bool:
+    """Whether the compiled kernels import (without them backend="auto" renders with torch)."""
     try:
         from psimap.render.native import rasterize_native  # noqa: F401
     except Exception:
@@ -104,7 +85,7 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
 
     proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
 
-    use_native = backend == "native" or (backend == "auto" and device.type == "cpu" and _native_available())
+    use_native = backend == "native" or (backend == "auto" and device.type == "cpu" and native_available())
     if use_native:
         try:
             from psimap.render.native import rasterize_native

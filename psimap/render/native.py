@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from psimap.render import _native
-from psimap.render.api import RenderOutput
+from psimap.render.output import RenderOutput
 from psimap.render.project import Projected
 
 # Tests set this: every output buffer is filled with NaN (-1 for ints) before the kernels run, so a

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import torch
 
+from psimap.transforms import quat_to_rotmat_torch
+
 CHI = 3.0                          # the splat is cut at the 3 sigma disk u^2 + v^2 <= CHI^2
 R_LOWPASS = math.sqrt(math.log(255.0))   # beyond this pixel radius exp(-rho2) < 1/255
 # Slack (pixels) added to every box so that a pixel lying exactly on the ellipse / low-pass border
@@ -39,19 +41,6 @@ class Projected:
     box_circle: torch.Tensor
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """quats: [N, 4] (w, x, y, z), any non-zero norm -> rotation matrices [N, 3, 3] (columns = axes)."""
-    norm = quats.norm(dim=-1, keepdim=True)
-    q = quats / torch.where(norm > 0, norm, torch.ones_like(norm))
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
-
-
 def project_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                     opacities: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
                     width: int, height: int, near: float = 0.2, far: float = 1000.0) -> Projected:
@@ -70,7 +59,7 @@ def project_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tens
     quats_s = torch.where(fin, quats, torch.tensor([1.0, 0, 0, 0], dtype=quats.dtype, device=quats.device))
     scales_s = torch.where(fin, scales, torch.ones_like(scales))
 
-    R = quat_to_rotmat(quats_s)                                   # [N, 3, 3]
+    R = quat_to_rotmat_torch(quats_s)                             # [N, 3, 3]
     Rc = viewmat[:3, :3]
     tc = viewmat[:3, 3]
     mu_c = means_s @ Rc.T + tc                                    # [N, 3]

@@ -14,7 +14,7 @@ import math
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from psimap.render.api import RenderOutput
+from psimap.render.output import RenderOutput
 from psimap.render.binning import TILE, bin_surfels
 from psimap.render.project import CHI, Projected
 

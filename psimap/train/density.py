@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import torch
 
+from psimap.transforms import quat_to_rotmat_torch
+
 
 @dataclass
 class GradStats:
@@ -47,16 +49,6 @@ def accumulate(stats: GradStats, grad_means, means, viewmat, K, width: int, heig
         seen = (grad_means.abs().sum(1) > 0) & (means @ R[2] + viewmat[2, 3] > 0)
         stats.total += torch.where(seen, g_ndc, torch.zeros_like(g_ndc))
         stats.count += seen.float()
-
-
-def quat_to_rotmat(q):
-    """[N,4] (w,x,y,z), normalised inside -> [N,3,3]."""
-    q = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
 
 
 def _rebuild(params: dict, optimizer, keep, extra: dict) -> None:
@@ -104,7 +96,7 @@ def densify_and_prune(params: dict, optimizer, stats: GradStats, *, grad_thresho
         for k, v in params.items():                     # clones: exact copies (gradient moves them apart)
             extra[k].append(v[clone_idx])
         if len(split_idx):
-            R = quat_to_rotmat(params["quats"][split_idx])
+            R = quat_to_rotmat_torch(params["quats"][split_idx])
             s = scales[split_idx]
             for _ in range(2):
                 uv = torch.randn(len(split_idx), 2, generator=generator) * s

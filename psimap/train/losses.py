@@ -4,6 +4,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from psimap.transforms import pixels_to_camera_torch
+
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32):
     x = torch.arange(size, dtype=dtype) - (size - 1) / 2
@@ -64,7 +66,7 @@ def depth_to_normal(depth, K):
     H, W = depth.shape
     ys, xs = torch.meshgrid(torch.arange(H, dtype=depth.dtype), torch.arange(W, dtype=depth.dtype),
                             indexing="ij")
-    P = torch.stack([(xs - K[0, 2]) / K[0, 0] * depth, (ys - K[1, 2]) / K[1, 1] * depth, depth], -1)
+    P = pixels_to_camera_torch(xs, ys, depth, K)
     dx = torch.zeros_like(P)
     dy = torch.zeros_like(P)
     dx[:, 1:-1] = P[:, 2:] - P[:, :-2]

@@ -18,7 +18,8 @@ from psimap import PsimapError
 from psimap.data.frames import DepthSized
 from psimap.train.config import TrainConfig
 from psimap.train import losses as L
-from psimap.train.density import GradStats, accumulate, densify_and_prune, quat_to_rotmat
+from psimap.train.density import GradStats, accumulate, densify_and_prune
+from psimap.transforms import depth_to_world, quat_to_rotmat_torch
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logit", "color_logit")
 
@@ -134,18 +135,12 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
 
 
 def backprojected(frames, stride: int):
-    """World points [P,3] and their colours [P,3] of every `stride`-th valid pixel of each frame."""
+    """World points [P,3] float64 and their colours [P,3] of every `stride`-th valid pixel of each frame."""
     pts, cols = [], []
     for fr in frames:
-        d = fr.depth.numpy()[::stride, ::stride]
-        v, u = np.nonzero(d > 0)
-        z = d[v, u].astype(np.float64)
-        K = fr.K.numpy().astype(np.float64)
-        x = (u * stride - K[0, 2]) / K[0, 0] * z
-        y = (v * stride - K[1, 2]) / K[1, 1] * z
-        pc = np.stack([x, y, z], 1)
-        pts.append(pc @ fr.c2w[:3, :3].T + fr.c2w[:3, 3])
-        cols.append(fr.rgb.numpy()[::stride, ::stride][v, u])
+        p, v, u = depth_to_world(fr.depth.numpy(), fr.K.numpy(), fr.c2w, stride=stride)
+        pts.append(p)
+        cols.append(fr.rgb.numpy()[v, u])
     return np.concatenate(pts), np.concatenate(cols)
 
 
@@ -310,7 +305,7 @@ def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: f
         n = params["means"].shape[0]
         # an unbiased estimate of the mean over a random subset keeps the per-step cost bounded
         sub = torch.randperm(n, generator=generator)[:geo_samples] if n > geo_samples else slice(None)
-        R = quat_to_rotmat(params["quats"][sub])
+        R = quat_to_rotmat_torch(params["quats"][sub])
         terms["geo"] = cfg.lambda_geo * geo_scale * geo_loss(params["means"][sub], R[:, :, 2], index,
                                                              lambda_n=cfg.lambda_geo_normal)
     if regularize and cfg.lambda_normal > 0:
