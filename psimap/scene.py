@@ -84,6 +84,48 @@ class Scene:
         return (f"Scene({len(self)} surfels, {len(self.classes)} classes, "
                 f"{len(self.cameras['names'])} cameras)")
 
+    # ---- frame ---------------------------------------------------------------------------------
+    def up_evidence(self) -> tuple:
+        """(points [N, 3], normals [N, 3], weights [N], c2w [M, 4, 4]) for
+        `psimap.geometry.gravity.estimate_up`: surfel centres, normals (third rotation column),
+        areas x opacities, and the training cameras."""
+        from psimap.transforms import quat_to_rotmat
+
+        s = self.surfels
+        means = s["means"].detach().cpu().double().numpy()
+        normals = quat_to_rotmat(s["quats"].detach().cpu().double().numpy())[:, :, 2]
+        sc = s["scales"].detach().cpu().double().numpy()
+        weights = np.abs(sc[:, 0] * sc[:, 1]) * s["opacities"].detach().cpu().double().numpy().clip(0, 1)
+        return means, normals, weights, self.cameras["c2w"].detach().cpu().double().numpy()
+
+    def rotated(self, R) -> "Scene":
+        """A copy of the scene turned by the rotation R [3, 3] about the world origin: surfel centres
+        and orientations, query Gaussians and cameras. The rotation is recorded in
+        config["world_rotation"] (composed with any earlier one: it takes the input capture's frame
+        to this scene's)."""
+        import torch
+
+        from psimap.transforms import quat_to_rotmat, rotmat_to_quat
+
+        R = np.asarray(R, np.float64)
+        s = {k: v.clone() for k, v in self.surfels.items()}
+        s["means"] = torch.as_tensor(s["means"].double().numpy() @ R.T, dtype=torch.float32)
+        rot = R[None] @ quat_to_rotmat(s["quats"].double().numpy())
+        s["quats"] = torch.as_tensor(rotmat_to_quat(rot), dtype=torch.float32)
+        q = {k: v.clone() for k, v in self.queries.items()}
+        q["mean"] = torch.as_tensor(q["mean"].double().numpy() @ R.T, dtype=torch.float32)
+        q["cov"] = torch.as_tensor(R[None] @ q["cov"].double().numpy() @ R.T[None], dtype=torch.float32)
+        cams = dict(self.cameras)
+        T = np.eye(4)
+        T[:3, :3] = R
+        cams["c2w"] = torch.as_tensor(T[None] @ self.cameras["c2w"].double().numpy(), dtype=torch.float64)
+        config = dict(self.config)
+        before = np.asarray(config.get("world_rotation", np.eye(3).tolist()), np.float64)
+        config["world_rotation"] = (R @ before).tolist()
+        out = type(self)(s, classes=self.classes, cameras=cams, queries=q, config=config, metrics=self.metrics)
+        out.path = self.path
+        return out
+
     # ---- labels -------------------------------------------------------------------------------
     def instance_ids(self, min_affinity: float = 0.5):
         """[N] int64 instance id per surfel (0 = none).

@@ -173,3 +173,48 @@ def test_parse_and_rotation():
     assert np.array_equal(snap_to_axis(tilted), tilted)
     given = resolve_up("-z", None, None, None, None)
     assert given.source == "given" and np.allclose(given.rotation @ [0, 0, -1], [0, 0, 1])
+
+
+# ---- on a trained map ---------------------------------------------------------------------------
+def _small_scene():
+    from psimap.data.frames import ClassInfo
+    from psimap.scene import scene_from_meshes
+
+    floor = trimesh.creation.box(extents=[3.0, 2.5, 0.02]).apply_translation([0, 0, -0.01])
+    table = trimesh.creation.box(extents=[1.0, 0.6, 0.05]).apply_translation([0.3, 0.1, 0.72])
+    box = trimesh.creation.box(extents=[0.2, 0.14, 0.12]).apply_translation([0.3, 0.1, 0.81])
+    w, h, n = 64, 48, 6
+    K = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]])
+    c2ws = [look_at(np.array([1.6 * np.cos(a), 1.6 * np.sin(a), 1.5]), [0.3, 0.1, 0.7])
+            for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
+    cams = {"K": np.stack([K] * n), "c2w": np.stack(c2ws), "width": w, "height": h,
+            "names": [f"c{i}" for i in range(n)]}
+    return scene_from_meshes([floor, table, box], [0, 0, 5], [1, 2, 3],
+                             [ClassInfo(1, "floor", False), ClassInfo(2, "table", False), ClassInfo(3, "box", True)],
+                             cams, colors=[(0.5, 0.5, 0.5), (0.6, 0.4, 0.2), (0.9, 0.1, 0.1)])
+
+
+@pytest.mark.parametrize("frame", ["y-up", "z-down", "colmap"])
+def test_rotated_scene_renders_the_same_and_its_up_is_found(frame):
+    """A checkpoint turned into another world frame: every camera still sees the same image (the
+    renderer with non-identity world rotations), the estimate finds its up, and turning it back
+    restores the original map."""
+    scene = _small_scene()
+    R = FRAMES[frame]
+    turned = scene.rotated(R)
+    np.testing.assert_allclose(turned.config["world_rotation"], R, atol=1e-12)
+    for i in (0, 3):
+        a, b = scene.render(i), turned.render(i)
+        np.testing.assert_allclose(b.depth.numpy(), a.depth.numpy(), atol=2e-4)
+        np.testing.assert_allclose(b.rgb.numpy(), a.rgb.numpy(), atol=2e-3)
+    est = estimate_up(*turned.up_evidence())
+    assert _angle(est.up, R @ [0, 0, 1]) < 0.5
+    back = turned.rotated(est.rotation)
+    # a rotation about the vertical is free: compare heights and normals' vertical components
+    np.testing.assert_allclose(back.surfels["means"][:, 2].numpy(), scene.surfels["means"][:, 2].numpy(),
+                               atol=0.01)
+    up_back = back.up_evidence()[1][:, 2]
+    np.testing.assert_allclose(np.abs(up_back), np.abs(scene.up_evidence()[1][:, 2]), atol=0.01)
+    if frame != "colmap":      # an axis-aligned frame comes back exactly (snapped estimate)
+        np.testing.assert_allclose(est.rotation @ R, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(back.surfels["means"].numpy(), scene.surfels["means"].numpy(), atol=1e-5)
