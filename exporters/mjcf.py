@@ -1,10 +1,10 @@
 """MJCF writer: `scene.xml` + `assets/` for MuJoCo.
 
-Per object a body at its centre of mass with a freejoint (none for a fixed object: static furniture), an explicit <inertial> (principal axes
-and moments), a textured visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass
-and never collides) and its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo
-collides a mesh geom through its convex hull, so each part is one convex piece). The background is
-static and visual only (its convex hull would swallow the room); a floor plane carries contacts.
+Per object a body at its centre of mass with a freejoint and an explicit <inertial> (principal axes
+and moments; neither for a static object: furniture, barely seen or pinned things), a textured
+visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass and never collides) and
+its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo collides a mesh geom
+through its convex hull, so each part is one convex piece). The background is static and visual only (its convex hull would swallow the room); a floor plane carries contacts.
 Names are `<label>_<instance id>`: unique and stable between exports.
 """
 from __future__ import annotations
@@ -13,6 +13,8 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
+
+from psimap.exporters.roles import Role
 
 
 def _f(x) -> str:
@@ -88,7 +90,7 @@ def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float 
         ph = o.physics
         com = np.asarray(ph.com, np.float64)
         body = ET.SubElement(world, "body", name=o.name, pos=_f(com))
-        if not o.fixed:     # a fixed object is welded to the world: no joint, its mass never enters
+        if o.role is Role.DYNAMIC:     # a static object is welded to the world: no joint, no mass
             ET.SubElement(body, "freejoint", name=f"{o.name}_joint")
             ET.SubElement(body, "inertial", pos="0 0 0", quat=_f(_quat_wxyz(ph.principal_axes)),
                           mass=_f(ph.mass), diaginertia=_f(_balanced(ph.principal_inertia)))

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from psimap import PsimapError
+from psimap.exporters.roles import EXPORT_RULES, Reason, Role
 
 FORMATS = ("mjcf", "usd", "glb")
 
@@ -85,24 +86,25 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                                              seed=seed, timings=scene_steps, static_classes=static_classes,
                                              **kw)
     t_objects = time.perf_counter() - t0
-    objs = [o for o in all_objs if not o.skipped and not o.static]
-    mark_fixed(objs, static_classes, min_rigid_surfels)
+    # the environment passed in the list is no object (it is `background`)
+    objs = [o for o in all_objs if o.role is not Role.SKIPPED and o.reason is not Reason.ENVIRONMENT]
+    assign_roles(objs, static_classes, min_rigid_surfels)
     names = [o.name for o in objs]
     if len(set(names)) != len(names):
         raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
     floor_z = floor_height(objs, background)
     timings = {"objects_s": t_objects, **scene_steps}
     for o in all_objs:      # per asset step, summed over the objects
-        for k, v in o.timings.items():
+        for k, v in o.measured.timings.items():
             timings[k] = timings.get(k, 0.0) + v
     report = {"format": sorted(fmts), "floor_z": floor_z, "objects": [], "skipped": [],
               "background": None}
     with atomic_dir(out_dir) as tmp:
         files = _write_meshes(objs, background, tmp)
         for o in all_objs:
-            if o.skipped:
+            if o.role is Role.SKIPPED:
                 report["skipped"].append({"name": o.name, "instance_id": int(o.instance_id),
-                                          "class": o.label, "reason": o.skipped})
+                                          "class": o.label, "reason": o.why})
         from psimap.exporters.report import object_entry, write_report
 
         t = time.perf_counter()
@@ -119,14 +121,13 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                 res = check_mjcf(xml)
                 pinned = {}
                 for _ in range(PIN_ROUNDS if pin_unstable else 0):
-                    movers = [o for o in objs if o.name in res["unstable"] and not o.fixed]
+                    movers = [o for o in objs if o.name in res["unstable"] and o.role is Role.DYNAMIC]
                     if res["passed"] or res["nan"] or res["exploded"] or res["penetrating"] or not movers:
                         break
                     for o in movers:
                         moved = res["drift"].get(o.name, res["fell"].get(o.name, 0.0))
-                        o.fixed = True
-                        o.fixed_reason = pinned[o.name] = (f"unstable in the settle check (moved "
-                                                           f"{moved * 100:.1f} cm in 2 s)")
+                        pinned[o.name] = f"unstable in the settle check (moved {moved * 100:.1f} cm in 2 s)"
+                        o.make_static(Reason.UNSTABLE, pinned[o.name])
                     xml = write_mjcf(objs, mj_dir, background=background, floor_z=floor_z)
                     res = check_mjcf(xml)
                 res["pinned"] = pinned
@@ -167,19 +168,22 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     return report
 
 
-def mark_fixed(objs, static_classes=None, min_rigid_surfels: int = MIN_RIGID_SURFELS) -> None:
-    """Set `.fixed` and `.fixed_reason` for this export: objects of a static class, and objects seen
-    too little to be a reliable rigid body (fewer than min_rigid_surfels surfels in the checkpoint).
-    Recomputed on every call (the same objects can be exported with other rules)."""
+def assign_roles(objs, static_classes=None, min_rigid_surfels: int = MIN_RIGID_SURFELS) -> None:
+    """Dynamic or static for this export: static for objects of a static class and objects seen too
+    little to be a reliable rigid body (fewer than min_rigid_surfels surfels in the checkpoint),
+    dynamic otherwise. Decided anew on every call (the same objects can be exported with other
+    rules): a static role from an earlier export's rules (roles.EXPORT_RULES) is reset first."""
     from psimap.exporters.physics import is_static_class
 
     for o in objs:
-        o.fixed, o.fixed_reason = False, ""
+        if o.role is Role.SKIPPED or o.role is Role.STATIC and o.reason not in EXPORT_RULES:
+            continue
+        o.make_dynamic()
         if is_static_class(o.label, static_classes):
-            o.fixed, o.fixed_reason = True, f"static furniture class: '{o.label}'"
+            o.make_static(Reason.STATIC_CLASS, f"static furniture class: '{o.label}'")
         elif 0 <= o.surfel_count < min_rigid_surfels:
-            o.fixed, o.fixed_reason = True, (f"too little evidence for a rigid body: {o.surfel_count} "
-                                             f"surfels < {min_rigid_surfels}")
+            o.make_static(Reason.LITTLE_EVIDENCE, f"too little evidence for a rigid body: {o.surfel_count} "
+                                                  f"surfels < {min_rigid_surfels}")
 
 
 

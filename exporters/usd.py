@@ -7,7 +7,7 @@ colliders (CollisionAPI; convex parts with MeshCollisionAPI approximation convex
 UsdGeom Sphere / Cube / Cylinder). The class goes on the object through UsdSemantics.LabelsAPI
 ("class" taxonomy, what Isaac Sim's labelling reads) and the instance id as `psimap:instanceId`.
 The background is static (no RigidBodyAPI) with a triangle-mesh collider (approximation none);
-so is a fixed object (static furniture, barely seen things): colliders without RigidBodyAPI / MassAPI.
+so is a static object (furniture, barely seen or pinned things): colliders without RigidBodyAPI / MassAPI.
 """
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+
+from psimap.exporters.roles import Role
 
 
 def _vt():
@@ -138,7 +140,7 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
         x = UsdGeom.Xform.Define(stage, f"/World/{o.name}")
         x.AddTranslateOp().Set(Gf.Vec3d(*com))
         prim = x.GetPrim()
-        if not o.fixed:     # a fixed object is a static collider: CollisionAPI only, like the background
+        if o.role is Role.DYNAMIC:     # a static object is a collider: CollisionAPI only, like the background
             UsdPhysics.RigidBodyAPI.Apply(prim)
             mass = UsdPhysics.MassAPI.Apply(prim)
             mass.CreateMassAttr(float(ph.mass))

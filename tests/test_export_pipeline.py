@@ -11,6 +11,7 @@ import trimesh
 
 from psimap import PsimapError
 from psimap.camera import look_at
+from psimap.exporters.roles import Reason, Role
 
 
 def _objects():
@@ -38,7 +39,7 @@ def _files(root):
 def test_all_formats_deterministic_and_degenerate_skipped(objects, tmp_path):
     from psimap.exporters.pipeline import export_scene
 
-    assert objects[2].skipped and "flat" in objects[2].skipped
+    assert objects[2].role is Role.SKIPPED and objects[2].reason is Reason.REPAIR and "flat" in objects[2].why
     r1 = export_scene(objects, tmp_path / "a", "all")
     r2 = export_scene(_objects(), tmp_path / "b", "all")
     f1, f2 = _files(tmp_path / "a"), _files(tmp_path / "b")
