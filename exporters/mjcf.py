@@ -30,22 +30,16 @@ def _quat_wxyz(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
-def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float | None = None,
-               timestep: float = 0.002, model_name: str = "psimap_scene") -> Path:
-    """Write `out_dir/scene.xml` and `out_dir/assets/*`; returns the scene.xml path.
-
-    objects: list of psimap.exporters.objects.SceneObject (dynamic, with .physics and .collision).
-    background: SceneObject or None (static, visual only). floor_z: height of the floor plane
-    (default: the lowest object point).
+def write_mjcf(scene, out_dir: str | Path, *, timestep: float = 0.002, model_name: str = "psimap_scene") -> Path:
+    """Write `out_dir/scene.xml` and `out_dir/assets/*` of `scene` (exporters.formats.ExportScene);
+    returns the scene.xml path. The background is visual only; the floor is a plane at scene.floor_z.
     """
     from psimap.exporters.objfile import write_plain, write_textured_obj
 
+    objects, background, floor_z = scene.objects, scene.background, scene.floor_z
     out = Path(out_dir)
     assets = out / "assets"
     assets.mkdir(parents=True, exist_ok=True)
-    if floor_z is None:
-        lows = [float(o.mesh.bounds[0, 2]) for o in objects]
-        floor_z = min(lows) if lows else 0.0
 
     root = ET.Element("mujoco", model=model_name)
     ET.SubElement(root, "compiler", angle="radian", meshdir="assets", texturedir="assets",
@@ -89,7 +83,7 @@ def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float 
     for o in objects:
         ph = o.physics
         com = np.asarray(ph.com, np.float64)
-        body = ET.SubElement(world, "body", name=o.name, pos=_f(com))
+        body = ET.SubElement(world, "body", name=o.name, pos=_f(com + scene.offset(o)))
         if o.role is Role.DYNAMIC:     # a static object is welded to the world: no joint, no mass
             ET.SubElement(body, "freejoint", name=f"{o.name}_joint")
             ET.SubElement(body, "inertial", pos="0 0 0", quat=_f(_quat_wxyz(ph.principal_axes)),

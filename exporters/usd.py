@@ -88,14 +88,12 @@ def _visual(stage, parent: str, obj, origin: np.ndarray, assets: Path, rel_asset
     return mesh
 
 
-def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float = 0.0,
-              nudges: dict | None = None) -> Path:
-    """Write `out_dir/scene.usda` (+ textures in `out_dir/assets/`); returns its path.
-
-    nudges: {object name: dz} lifts applied by the MJCF penetration check, so every format agrees.
-    """
+def write_usd(scene, out_dir: str | Path) -> Path:
+    """Write `out_dir/scene.usda` (+ textures in `out_dir/assets/`) of `scene`
+    (exporters.formats.ExportScene); returns its path."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdSemantics, Vt
 
+    objects, background, floor_z = scene.objects, scene.background, scene.floor_z
     out = Path(out_dir)
     assets = out / "assets"
     assets.mkdir(parents=True, exist_ok=True)
@@ -106,10 +104,9 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
     UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
     world = UsdGeom.Xform.Define(stage, "/World")
     stage.SetDefaultPrim(world.GetPrim())
-    scene = UsdPhysics.Scene.Define(stage, "/World/PhysicsScene")
-    scene.CreateGravityDirectionAttr(Gf.Vec3f(0, 0, -1))
-    scene.CreateGravityMagnitudeAttr(9.81)
-    nudges = nudges or {}
+    physics = UsdPhysics.Scene.Define(stage, "/World/PhysicsScene")
+    physics.CreateGravityDirectionAttr(Gf.Vec3f(0, 0, -1))
+    physics.CreateGravityMagnitudeAttr(9.81)
 
     # floor: a static thin box collider (a plane has no extent validators accept everywhere)
     floor = UsdGeom.Cube.Define(stage, "/World/floor")
@@ -136,7 +133,7 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
 
     for o in objects:
         ph = o.physics
-        com = np.asarray(ph.com, np.float64) + np.array([0, 0, nudges.get(o.name, 0.0)])
+        com = np.asarray(ph.com, np.float64) + scene.offset(o)
         x = UsdGeom.Xform.Define(stage, f"/World/{o.name}")
         x.AddTranslateOp().Set(Gf.Vec3d(*com))
         prim = x.GetPrim()

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+# stdlib-only registry (names and "module:function" strings; a writer is imported when it runs)
+from psimap.exporters.formats import FORMATS
+
 
 def opt(default, help: str, **extra):
     """A dataclass field carrying its CLI help text."""
@@ -75,7 +78,7 @@ class MeshOptions:
 @dataclass
 class ExportOptions:
     ckpt: str = pos("trained scene checkpoint")
-    format: str = opt("mjcf", "output format (all = the three)", choices=["usd", "mjcf", "glb", "all"])
+    format: str = opt("mjcf", "output format (all = every one)", choices=[*FORMATS, "all"])
     out: str = opt("export", "output folder")
     completion: str = opt("auto", "object completion: auto or none", choices=["auto", "none"])
     no_check: bool = opt(False, "skip the MuJoCo simulation check")
