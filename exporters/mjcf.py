@@ -4,8 +4,9 @@ Per object a body at its centre of mass with a freejoint and an explicit <inerti
 and moments; neither for a static object: furniture, barely seen or pinned things), a textured
 visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass and never collides) and
 its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo collides a mesh geom
-through its convex hull, so each part is one convex piece). The background is static and visual only (its convex hull would swallow the room); a floor plane carries contacts.
-Names are `<label>_<instance id>`: unique and stable between exports.
+through its convex hull, so each part is one convex piece). The background is static and visual
+only (its convex hull would swallow the room); a floor plane carries contacts. Objects stand where
+the export scene puts them: reconstructed, moved by the settle check's nudge. Names are `<label>_<instance id>`: unique and stable between exports.
 """
 from __future__ import annotations
 

@@ -3,6 +3,7 @@ export scene so every format places an object at the same height, `--format` rea
 registry without importing a writer, and a new format added as one module."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -23,7 +24,8 @@ def _scene():
 
     table = trimesh.creation.box(extents=[0.8, 0.6, 0.4]).apply_translation([0, 0, 0.2])
     box = trimesh.creation.box(extents=[0.12, 0.08, 0.1]).apply_translation([0.1, 0.05, 0.45 - SUNK])
-    can = trimesh.creation.cylinder(radius=0.04, height=0.14, sections=24).apply_translation([1.0, 0, 0.07 + HOVER])
+    can = trimesh.creation.cylinder(radius=0.04, height=0.14, sections=24)
+    can.apply_translation([1.0, 0, 0.07 + HOVER])
     return [build_object(m, lab, i + 1, completion="none")
             for i, (m, lab) in enumerate([(table, "table"), (box, "box"), (can, "can")])]
 
@@ -105,17 +107,19 @@ def test_a_new_format_is_one_module(tmp_path, monkeypatch):
         "def reject(path):\n"
         "    return {'errors': ['no <world> element']}\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setitem(formats.FORMATS, "sdf", formats.Format("sdf", "SDF", "fake_sdf:write_sdf", "fake_sdf:validate"))
+    sdf = formats.Format("sdf", "SDF", "fake_sdf:write_sdf", "fake_sdf:validate")
+    monkeypatch.setitem(formats.FORMATS, "sdf", sdf)
     r = export_scene(_scene(), tmp_path / "out", "sdf")
     written = json.loads((tmp_path / "out" / "scene.sdf").read_text())
     assert written["nudges"] == r["check"]["nudges"] and set(written["nudges"]) == {"box_2", "can_3"}
-    assert written["lift"]["box_2"] == pytest.approx(written["nudges"]["box_2"]) and written["lift"]["table_1"] == 0
+    assert written["lift"]["box_2"] == pytest.approx(written["nudges"]["box_2"])
+    assert written["lift"]["table_1"] == 0
     assert written["roles"] == {"table_1": "static", "box_2": "dynamic", "can_3": "dynamic"}
     assert written["floor_z"] == pytest.approx(r["floor_z"])
     assert r["sdf_validation"] == {"errors": []} and r["format"] == ["sdf"]
     assert not (tmp_path / "out" / "scene.xml").exists()        # the check's MJCF is not an output
     # a validator's error fails the export, and nothing is left behind
-    monkeypatch.setitem(formats.FORMATS, "sdf", formats.Format("sdf", "SDF", "fake_sdf:write_sdf", "fake_sdf:reject"))
+    monkeypatch.setitem(formats.FORMATS, "sdf", dataclasses.replace(sdf, validator="fake_sdf:reject"))
     with pytest.raises(PsimapError, match="SDF validation failed: no <world> element"):
         export_scene(_scene(), tmp_path / "bad", "sdf", check=False)
     assert not (tmp_path / "bad").exists()
@@ -136,6 +140,7 @@ def test_format_choices_come_from_the_registry_without_importing_a_writer():
     code = ("import sys, dataclasses, psimap.options as O\n"
             "f = {x.name: x for x in dataclasses.fields(O.ExportOptions)}['format']\n"
             "print(list(f.metadata['choices']))\n"
-            "print(sorted(m for m in ('numpy', 'trimesh', 'pxr', 'psimap.exporters.mjcf') if m in sys.modules))\n")
+            "heavy = ('numpy', 'trimesh', 'pxr', 'psimap.exporters.mjcf')\n"
+            "print(sorted(m for m in heavy if m in sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.splitlines() == ["['mjcf', 'usd', 'glb', 'all']", "[]"]
