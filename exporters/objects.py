@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -103,7 +103,7 @@ class SceneObject:
 
 
 def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, views=None,
-                 source_textured=None, completion: str = "auto", context: dict | None = None,
+                 source_textured=None, completion: str = "auto", context=None,
                  decimation_budget: float | None = None, collision_tolerance: float | None = None,
                  max_hulls: int = 8, densities: dict | None = None, texel: float = 0.001,
                  resolution: float | None = None, seed: int = 0) -> SceneObject:
@@ -111,7 +111,7 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
 
     mesh: trimesh.Trimesh (metres, world frame). views: list of texture.View to bake from;
     source_textured: a textured trimesh to transfer colour from (scans); else vertex colours of
-    `mesh` (if any). completion: "auto" calls psimap.completion, "none" skips it.
+    `mesh` (if any). completion and context: as prepare_solid's.
     resolution: size (m) of the finest detail the source resolves (TSDF voxel): decimation budget
     and collision tolerance are never asked to be finer than it.
     """
@@ -123,10 +123,19 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
 
 
 def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, completion: str = "auto",
-                  context: dict | None = None, resolution: float | None = None) -> SceneObject:
+                  context=None, support_z: float | None = None, surfel_points=None, carve_views=None,
+                  resolution: float | None = None) -> SceneObject:
     """Steps 2-3: clean, complete and close `mesh` into a sound watertight solid (obj.mesh), or an
     object with role Role.SKIPPED. The solid can still be edited (overlaps, support) before
-    `finish_object`."""
+    `finish_object`.
+
+    completion: "auto" (psimap.completion's tiers), "none" (skipped) or the name of one registered
+    method (psimap.completion.complete says what running one method means); context: the
+    psimap.completion.CompletionContext of the object (its label and method are set here).
+    With `resolution` (the source's voxel) an open scan is closed as the voxel solid it encloses
+    (exporters.solidify), carved by `carve_views` (texture.View) around `surfel_points` [P, 3], down
+    to the support plane at height `support_z`, on which the solid is then made to rest.
+    """
     from psimap.exporters.repair import repair_mesh
 
     obj = SceneObject(int(instance_id), str(label), mesh, semantic_id=int(semantic_id))
@@ -140,23 +149,23 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         obj.skip(Reason.REPAIR, f"repair: {pre.reason}")
         return obj
     m = pre.mesh
-    if completion == "auto":
-        from psimap.completion import complete
+    if completion != "none":
+        from psimap.completion import CompletionContext, complete
 
         t1 = time.perf_counter()
-        res = complete(m, dict(context or {}, label=label, instance_id=int(instance_id)))
+        res = complete(m, replace(context or CompletionContext(), label=label, method=completion))
         obj.measured.timings["completion_s"] = time.perf_counter() - t1
         obj.measured.completed, obj.measured.completion_method = bool(res.completed), str(res.method)
         if res.completed and res.mesh is not None:
             m = res.mesh
-    support = (context or {}).get("support_z")
+    support = support_z
     # a fused (open) scan is closed as the voxel solid it encloses, at the source's resolution
     solid_kw = {}
     if resolution:
         from psimap.exporters.solidify import solid_pitch
 
-        solid_kw = {"pitch": solid_pitch(m, resolution), "support_z": support,
-                    "points": (context or {}).get("surfel_points"), "views": (context or {}).get("carve_views")}
+        solid_kw = {"pitch": solid_pitch(m, resolution), "support_z": support, "points": surfel_points,
+                    "views": carve_views}
     rep = repair_mesh(m, need_volume=True, **solid_kw)
     obj.measured.repair_steps = pre.steps + rep.steps
     if not rep.ok and obj.measured.completed:         # a bad completion must not lose the object
@@ -441,6 +450,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     import trimesh
     from tqdm import tqdm
 
+    from psimap.completion import CompletionContext
     from psimap.exporters.consistency import (cut_by_colliders, floor_from_background, make_consistent,
                                               neighbour_collider_parts)
     from psimap.exporters.instance_meshes import instance_meshes
@@ -468,18 +478,16 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             # it stands on the floor: on the floor plane the scene is exported with (the surfels
             # under one object and the background's dominant plane differ by a centimetre)
             support = floor_z
-        context = {"background": inst.background, "voxel_size": inst.voxel_size,
-                   "support_z": support,
-                   "support_planes": [] if support is None else [((0.0, 0.0, 1.0), support)],
-                   "neighbours": [t.mesh for t in inst.things if t is not item and t.mesh is not None
-                                  and len(t.mesh.faces)],
-                   "cameras": [(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
-                   "depths": [v.depth for v in views], "images": [v.rgb for v in views],
-                   "carve_views": inst.views,
-                   "surfel_points": disc_points(*(sf[k][members] for k in ("means", "quats", "scales",
-                                                                            "opacities")))}
+        context = CompletionContext(
+            background=inst.background, voxel_size=inst.voxel_size,
+            support_planes=[] if support is None else [((0.0, 0.0, 1.0), support)],
+            neighbours=[t.mesh for t in inst.things if t is not item and t.mesh is not None and len(t.mesh.faces)],
+            cameras=[(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
+            depths=[v.depth for v in views], images=[v.rgb for v in views])
+        surfel_points = disc_points(*(sf[k][members] for k in ("means", "quats", "scales", "opacities")))
         objs.append(prepare_solid(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,
-                                  completion=completion, context=context, resolution=inst.voxel_size))
+                                  completion=completion, context=context, support_z=support,
+                                  surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size))
         objs[-1].surfel_count = int(np.count_nonzero(members))
         if item.dropped_surfels:
             objs[-1].measured.repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away "

@@ -53,7 +53,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
-    SceneObject (background: optional static SceneObject). format: a name of the writer registry
+    SceneObject (background: optional static SceneObject). completion: "auto", "none" or one
+    registered method by name, for every object (psimap.completion.complete). format: a name of the writer registry
     (exporters.formats.FORMATS: "mjcf", "usd", "glb"), "all" or a list. check: run the MuJoCo
     simulation check (on an MJCF written for it); a load failure raises PsimapError, a failed settle
     is reported (report["check"]["passed"]).
@@ -71,13 +72,14 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     objects -> roles -> meshes/ and collision/ (as reconstructed) -> settle check (pins, nudges) ->
     the nudges applied to the export scene once -> every writer, in registry order.
     """
+    from psimap.completion.methods import Choices
     from psimap.exporters.formats import FORMATS, ExportScene, format_names, load
     from psimap.exporters.objects import SceneObject, extract_scene
     from psimap.io_utils import atomic_dir
 
     fmts = format_names(format)
-    if completion not in ("auto", "none"):
-        raise PsimapError(f"completion must be 'auto' or 'none', got {completion!r}")
+    if completion not in Choices():
+        raise PsimapError(f"unknown completion {completion!r} (choose from {', '.join(Choices())})")
     t0 = time.perf_counter()
     scene_steps: dict = {}
     if isinstance(scene_or_objects, (list, tuple)):

@@ -135,12 +135,16 @@ def test_format_names_follow_the_registry():
         format_names("fbx")
 
 
-def test_format_choices_come_from_the_registry_without_importing_a_writer():
-    """`psimap --help` reads the choices from the registry: no numpy, trimesh, pxr or writer."""
-    code = ("import sys, dataclasses, psimap.options as O\n"
-            "f = {x.name: x for x in dataclasses.fields(O.ExportOptions)}['format']\n"
-            "print(list(f.metadata['choices']))\n"
-            "heavy = ('numpy', 'trimesh', 'pxr', 'psimap.exporters.mjcf')\n"
-            "print(sorted(m for m in heavy if m in sys.modules))\n")
+def test_cli_choices_come_from_the_registries_without_heavy_imports():
+    """`psimap --help` reads the format and completion names from stdlib-only registries: no
+    numpy, trimesh, pxr, writer, nor the entry-point scan (importlib.metadata) at parser build."""
+    code = ("import sys, psimap.cli\n"
+            "parser = psimap.cli.build_parser()\n"
+            "heavy = ('numpy', 'trimesh', 'pxr', 'psimap.exporters.mjcf', 'importlib.metadata')\n"
+            "print(sorted(m for m in heavy if m in sys.modules))\n"
+            "import dataclasses, psimap.options as O\n"
+            "f = {x.name: x for x in dataclasses.fields(O.ExportOptions)}\n"
+            "print(list(f['format'].metadata['choices']))\n"
+            "print('mirror' in f['completion'].metadata['choices'])\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.splitlines() == ["['mjcf', 'usd', 'glb', 'all']", "[]"]
+    assert out.splitlines() == ["[]", "['mjcf', 'usd', 'glb', 'all']", "True"]
