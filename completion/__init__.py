@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from psimap import PsimapError
-from psimap.completion.methods import COVERAGE_THRESHOLD, CompletionContext, Method, Observation, methods
+from psimap.completion.methods import CompletionContext, Method, Observation, methods
 
 MIN_POINTS = 50               # fewer observed points do not constrain any shape
 ACCEPT_INLIERS = 0.9          # share of observed points within tolerance of a candidate surface
@@ -57,7 +57,8 @@ class CompletionResult:
     candidates: dict = field(default_factory=dict)   # method -> its fit numbers or why not
 
 
-def _observed_points(partial, context: CompletionContext) -> np.ndarray:
+def _observed_points(partial, context: CompletionContext):
+    """[P, 3] finite observed points: context.points, else samples of the partial mesh's surface."""
     import numpy as np
 
     pts = context.points

@@ -128,27 +128,17 @@ def test_bad_registrations_are_one_clear_error(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- through `psimap export`
 
 @pytest.fixture(scope="module")
-def ball_box_ckpt(tmp_path_factory):
+def ball_box_ckpt(ring_checkpoint):
     """A checkpoint of a ball and a box on a floor, seen from a ring of cameras."""
-    from psimap.camera import look_at
     from psimap.data.frames import ClassInfo
-    from psimap.scene import scene_from_meshes
 
     floor = trimesh.creation.box(extents=[1.4, 1.4, 0.02]).apply_translation([0, 0, -0.01])
     ball = trimesh.creation.icosphere(3, radius=0.07).apply_translation([-0.15, 0, 0.07])
     box = trimesh.creation.box(extents=[0.16, 0.12, 0.1]).apply_translation([0.18, 0.05, 0.05])
-    w, h, n = 96, 72, 10
-    K = np.array([[80.0, 0, w / 2], [0, 80.0, h / 2], [0, 0, 1]])
-    ring = [look_at(np.array([0.8 * np.cos(a), 0.8 * np.sin(a), 0.6]), [0, 0, 0.05])
-            for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    cams = {"K": np.stack([K] * n), "c2w": np.stack(ring), "width": w, "height": h,
-            "names": [f"v{i}" for i in range(n)]}
     classes = [ClassInfo(1, "floor", False), ClassInfo(2, "ball", True), ClassInfo(3, "box", True)]
-    scene = scene_from_meshes([floor, ball, box], [0, 4, 5], [1, 2, 3], classes, cams,
-                              colors=[(0.5, 0.5, 0.5), (0.1, 0.8, 0.1), (0.9, 0.1, 0.1)])
-    path = tmp_path_factory.mktemp("ballbox") / "scene.ckpt"
-    scene.save(path)
-    return path
+    return ring_checkpoint([floor, ball, box], [0, 4, 5], [1, 2, 3], classes,
+                           colors=[(0.5, 0.5, 0.5), (0.1, 0.8, 0.1), (0.9, 0.1, 0.1)], target=[0, 0, 0.05],
+                           radius=0.8, height=0.6, views=10)
 
 
 def _export(ckpt, out, *args):
