@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from psimap import PsimapError
-from psimap.exporters.roles import EXPORT_RULES, Reason, Role
+from psimap.exporters.roles import Reason, Role
 
 # A thing reconstructed from fewer surfels than this is exported static (with the reason): ~5 discs
 # per side of a box leave its underside, which decides how it rests, a guess. On the trained demo
@@ -54,10 +54,10 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
     SceneObject (background: optional static SceneObject). completion: "auto", "none" or one
-    registered method by name, for every object (psimap.completion.complete). format: a name of the writer registry
-    (exporters.formats.FORMATS: "mjcf", "usd", "glb"), "all" or a list. check: run the MuJoCo
-    simulation check (on an MJCF written for it); a load failure raises PsimapError, a failed settle
-    is reported (report["check"]["passed"]).
+    registered method by name, for every object (psimap.completion.complete). format: a name of the
+    writer registry (exporters.formats.FORMATS: "mjcf", "usd", "glb"), "all" or a list. check: run
+    the MuJoCo simulation check (on an MJCF written for it); a load failure raises PsimapError, a
+    failed settle is reported (report["check"]["passed"]).
     static_classes: class names exported static (collider, no freejoint / rigid body); None = the
     default heavy-furniture list (exporters.physics.STATIC_CLASSES), an empty set = all dynamic.
     min_rigid_surfels: an object a checkpoint holds fewer surfels of is exported static with the
@@ -167,15 +167,13 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
 
 
 def assign_roles(objs, static_classes=None, min_rigid_surfels: int = MIN_RIGID_SURFELS) -> None:
-    """Dynamic or static for this export: static for objects of a static class and objects seen too
-    little to be a reliable rigid body (fewer than min_rigid_surfels surfels in the checkpoint),
-    dynamic otherwise. Decided anew on every call (the same objects can be exported with other
-    rules): a static role from an earlier export's rules (roles.EXPORT_RULES) is reset first."""
+    """The role of each object (none skipped, not the environment) for this export: static for
+    objects of a static class and objects seen too little to be a reliable rigid body (fewer than
+    min_rigid_surfels surfels in the checkpoint), dynamic otherwise. Decided anew on every call (the
+    same objects can be exported with other rules)."""
     from psimap.exporters.physics import is_static_class
 
     for o in objs:
-        if o.role is Role.SKIPPED or o.role is Role.STATIC and o.reason not in EXPORT_RULES:
-            continue
         o.make_dynamic()
         if is_static_class(o.label, static_classes):
             o.make_static(Reason.STATIC_CLASS, f"static furniture class: '{o.label}'")

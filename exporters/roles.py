@@ -34,6 +34,3 @@ class Reason(str, Enum):
     DECIMATION = "decimation"               # decimation lost watertightness
     PHYSICS = "physics"                     # no mass properties (no volume)
 
-
-# the static reasons an export decides anew every time (exporters.pipeline.assign_roles)
-EXPORT_RULES = (Reason.STATIC_CLASS, Reason.LITTLE_EVIDENCE, Reason.UNSTABLE)
