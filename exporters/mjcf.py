@@ -6,7 +6,8 @@ visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass and ne
 its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo collides a mesh geom
 through its convex hull, so each part is one convex piece). The background is static and visual
 only (its convex hull would swallow the room); a floor plane carries contacts. Objects stand where
-the export scene puts them: reconstructed, moved by the settle check's nudge. Names are `<label>_<instance id>`: unique and stable between exports.
+the export scene puts them: as reconstructed, moved by the settle check's nudge. Names are
+`<label>_<instance id>`: unique and stable between exports.
 """
 from __future__ import annotations
 
@@ -14,8 +15,6 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
-
-from psimap.exporters.roles import Role
 
 
 def _f(x) -> str:
@@ -36,6 +35,7 @@ def write_mjcf(scene, out_dir: str | Path, *, timestep: float = 0.002, model_nam
     returns the scene.xml path. The background is visual only; the floor is a plane at scene.floor_z.
     """
     from psimap.exporters.objfile import write_plain, write_textured_obj
+    from psimap.exporters.roles import Role
 
     objects, background, floor_z = scene.objects, scene.background, scene.floor_z
     out = Path(out_dir)

@@ -16,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from psimap.exporters.roles import Role
-
 
 def _vt():
     from pxr import Gf, Vt
@@ -92,6 +90,8 @@ def write_usd(scene, out_dir: str | Path) -> Path:
     """Write `out_dir/scene.usda` (+ textures in `out_dir/assets/`) of `scene`
     (exporters.formats.ExportScene); returns its path."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdSemantics, Vt
+
+    from psimap.exporters.roles import Role
 
     objects, background, floor_z = scene.objects, scene.background, scene.floor_z
     out = Path(out_dir)
