@@ -173,7 +173,7 @@ def surface_metrics(pred, gt):
 def run_scene(tag: str, objects: dict, n_views: int, rng, log):
     import trimesh
 
-    from psimap.completion import complete
+    from psimap.completion import CompletionContext, complete
 
     placed = arrange(objects)
     half = max(abs(m.bounds[:, 0]).max() for m in placed.values())
@@ -187,10 +187,10 @@ def run_scene(tag: str, objects: dict, n_views: int, rng, log):
         neighbours = [gt_o.submesh([np.flatnonzero(seen[o])], append=True)
                       for o, gt_o in placed.items() if o != name and seen[o].any()]
         t0, c0 = time.perf_counter(), time.process_time()
-        res = complete(partial, {"points": p, "voxel_size": VOXEL, "label": name,
-                                 "support_planes": [((0, 0, 1), 0.0), ((0, -1, 0), -WALL_Y)],
-                                 "background": background, "neighbours": neighbours,
-                                 "cameras": cams, "depths": depths})
+        res = complete(partial, CompletionContext(points=p, voxel_size=VOXEL, label=name,
+                                                  support_planes=[((0, 0, 1), 0.0), ((0, -1, 0), -WALL_Y)],
+                                                  background=background, neighbours=neighbours,
+                                                  cameras=cams, depths=depths))
         dt = time.perf_counter() - t0
         cpu = time.process_time() - c0
         hull = trimesh.convex.convex_hull(p) if len(p) >= 4 else partial

@@ -43,7 +43,8 @@ def ycb_table(tmp: Path):
         real = float(re.search(r'mass="([0-9.eE+-]+)"', (YCB / f"{n}.xml").read_text()).group(1))
         objs.append(o)
         rows.append([n, o.physics.density_key, o.physics.density, real, o.mass, 100 * (o.mass / real - 1),
-                     o.faces_before, o.faces_after, o.decimation_error * 1000, o.decimation_budget * 1000,
+                     o.measured.faces_before, o.measured.faces_after, o.measured.decimation_error * 1000,
+                     o.measured.decimation_budget * 1000,
                      o.collision.kind, o.collision.hull_count, o.collision.error * 1000, dt])
     t = time.perf_counter()
     r = export_scene(objs, tmp / "ycb", "all")
@@ -92,8 +93,9 @@ def decimation_table(tmp: Path):
                          collision_tolerance=0.006)
         dt = time.perf_counter() - t
         r = export_scene([o], tmp / f"dec{budget}", "mjcf")
-        rows.append([budget * 1000, o.faces_before, o.faces_after, o.decimation_error * 1000,
-                     o.decimation_mean_error * 1000, r["timings"]["sim_seconds_per_wall_second"],
+        m = o.measured
+        rows.append([budget * 1000, m.faces_before, m.faces_after, m.decimation_error * 1000,
+                     m.decimation_mean_error * 1000, r["timings"]["sim_seconds_per_wall_second"],
                      r["check"]["max_drift"] * 1000, dt])
     header = ["budget mm", "faces in", "faces out", "Hausdorff mm", "mean mm", "sim s / wall s",
               "settle drift mm", "asset steps s"]

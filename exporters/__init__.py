@@ -1,14 +1,15 @@
 """psimap.exporters: from a trained checkpoint to per-object, simulation-ready assets.
 
 One module per step (DESIGN.md data flow): instance meshes (TSDF) -> repair -> completion ->
-decimation -> UV + texture -> collision geometry + mass -> MJCF / USD / GLB writers.
+decimation -> UV + texture -> collision geometry + mass -> the writer registry (exporters.formats:
+MJCF / USD / GLB).
 Installed as `psimap.exporters` (never as a top-level `exporters`).
 """
 
 
 def cli_export(opts) -> int:
-    """`psimap export CKPT --format usd|mjcf|glb --out OUT [--completion auto|none] [--no-check]
-    [--static-classes a,b | --dynamic-all]`."""
+    """`psimap export CKPT --format FORMAT|all --out OUT [--completion auto|none] [--no-check]
+    [--static-classes a,b | --dynamic-all]` (formats: exporters.formats.FORMATS)."""
     import sys
 
     from psimap.exporters.pipeline import export_scene

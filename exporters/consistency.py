@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from psimap.completion.meshops import to_manifold
+from psimap.exporters.roles import Reason, Role
 
 # an object this much wider than the largest thing class a robot moves (a table: ~2 m) is not one
 MAX_EXTENT = 2.5
@@ -67,13 +68,13 @@ def make_consistent(objects, floor_z: float | None = None, *, max_extent: float 
     overlaps, skip room-sized and swallowed ones. Objects already skipped are left alone."""
     import manifold3d
 
-    live = [o for o in objects if not o.skipped]
+    live = [o for o in objects if o.role is not Role.SKIPPED]
     for o in live:
         ext = np.asarray(o.mesh.extents, np.float64)
         if float(ext[:2].max()) > max_extent:
-            o.skipped = (f"spans {ext[:2].max():.1f} m (> {max_extent:.1f} m): a merged or room-sized "
-                         "label, not an object; left to the static background")
-    live = [o for o in live if not o.skipped]
+            o.skip(Reason.ROOM_SIZED, f"spans {ext[:2].max():.1f} m (> {max_extent:.1f} m): a merged or "
+                                      "room-sized label, not an object; left to the static background")
+    live = [o for o in live if o.role is not Role.SKIPPED]
     if floor_z is not None:
         for o in live:
             depth = float(floor_z - o.mesh.bounds[0, 2])
@@ -86,14 +87,14 @@ def make_consistent(objects, floor_z: float | None = None, *, max_extent: float 
             cut = _to_trimesh(to_manifold(o.mesh) ^ keep)
             _apply_cut(o, cut, min_keep, f"cut at the floor ({depth * 1000:.0f} mm below it)",
                        "below the floor")
-    live = [o for o in live if not o.skipped]
+    live = [o for o in live if o.role is not Role.SKIPPED]
     # big first: each solid keeps what it shares with every smaller one
     live.sort(key=lambda o: (-float(o.mesh.volume), o.instance_id))
     for i, big in enumerate(live):
-        if big.skipped:
+        if big.role is Role.SKIPPED:
             continue
         for small in live[i + 1:]:
-            if small.skipped or not _boxes_overlap(big.mesh.bounds, small.mesh.bounds):
+            if small.role is Role.SKIPPED or not _boxes_overlap(big.mesh.bounds, small.mesh.bounds):
                 continue
             a, b = to_manifold(big.mesh), to_manifold(small.mesh)
             shared = float((a ^ b).volume())
@@ -104,7 +105,7 @@ def make_consistent(objects, floor_z: float | None = None, *, max_extent: float 
                 keeper, loser, ka, kb = small, big, b, a
             _apply_cut(loser, _to_trimesh(kb - ka), min_keep,
                        f"overlap with {keeper.name} removed ({shared * 1e6:.1f} cm3)", f"inside {keeper.name}")
-            if big.skipped:
+            if big.role is Role.SKIPPED:
                 break
 
 
@@ -112,10 +113,10 @@ def _apply_cut(obj, cut, min_keep: float, step: str, swallowed: str) -> None:
     before = float(obj.mesh.volume)
     if len(cut.faces) == 0 or not cut.is_watertight or cut.volume < min_keep * before:
         kept = 0.0 if len(cut.faces) == 0 else float(cut.volume) / before
-        obj.skipped = f"{swallowed}: {kept * 100:.0f} % of its volume left after the cut"
+        obj.skip(Reason.SWALLOWED, f"{swallowed}: {kept * 100:.0f} % of its volume left after the cut")
         return
     obj.mesh = cut
-    obj.repair_steps.append(step)
+    obj.measured.repair_steps.append(step)
 
 
 def _boxes_overlap(b1, b2, pad: float = 0.0) -> bool:
@@ -130,11 +131,11 @@ def cut_by_colliders(obj, finished) -> None:
     mesh can still start centimetres inside its collider."""
     import manifold3d
 
-    if obj.skipped:
+    if obj.role is Role.SKIPPED:
         return
     for other in finished:
-        if other.skipped or other.collision is None or not _boxes_overlap(other.mesh.bounds, obj.mesh.bounds,
-                                                                          pad=0.01):
+        if (other.role is Role.SKIPPED or other.collision is None
+                or not _boxes_overlap(other.mesh.bounds, obj.mesh.bounds, pad=0.01)):
             continue
         hulls = [to_manifold(p) for p in other.collision.parts if len(p.faces) >= 4]
         if not hulls:
@@ -146,16 +147,16 @@ def cut_by_colliders(obj, finished) -> None:
             continue
         _apply_cut(obj, _to_trimesh(a - union), MIN_KEEP, f"cut by the collider of {other.name} "
                    f"({shared * 1e6:.1f} cm3)", f"inside the collider of {other.name}")
-        if obj.skipped:
+        if obj.role is Role.SKIPPED:
             return
 
 
 def neighbour_collider_parts(obj, finished, pad: float = 0.05) -> list:
     """Convex collider parts of the finished objects whose boxes come within `pad` of obj's: what
     obj's own collider must not enter (collision.collision_geometry's obstacles)."""
-    if obj.skipped:
+    if obj.role is Role.SKIPPED:
         return []
     return [p for other in finished
-            if not other.skipped and other.collision is not None
+            if other.role is not Role.SKIPPED and other.collision is not None
             and _boxes_overlap(other.mesh.bounds, obj.mesh.bounds, pad=pad)
             for p in other.collision.parts if len(p.faces) >= 4]

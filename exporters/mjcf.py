@@ -1,11 +1,13 @@
 """MJCF writer: `scene.xml` + `assets/` for MuJoCo.
 
-Per object a body at its centre of mass with a freejoint (none for a fixed object: static furniture), an explicit <inertial> (principal axes
-and moments), a textured visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass
-and never collides) and its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo
-collides a mesh geom through its convex hull, so each part is one convex piece). The background is
-static and visual only (its convex hull would swallow the room); a floor plane carries contacts.
-Names are `<label>_<instance id>`: unique and stable between exports.
+Per object a body at its centre of mass with a freejoint and an explicit <inertial> (principal axes
+and moments; neither for a static object: furniture, barely seen or pinned things), a textured
+visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass and never collides) and
+its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo collides a mesh geom
+through its convex hull, so each part is one convex piece). The background is static and visual
+only (its convex hull would swallow the room); a floor plane carries contacts. Objects stand where
+the export scene puts them: as reconstructed, moved by the settle check's nudge. Names are
+`<label>_<instance id>`: unique and stable between exports.
 """
 from __future__ import annotations
 
@@ -22,22 +24,17 @@ def _f(x) -> str:
     return " ".join(f"{float(v):.9g}" for v in np.atleast_1d(x))
 
 
-def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float | None = None,
-               timestep: float = 0.002, model_name: str = "psimap_scene") -> Path:
-    """Write `out_dir/scene.xml` and `out_dir/assets/*`; returns the scene.xml path.
-
-    objects: list of psimap.exporters.objects.SceneObject (dynamic, with .physics and .collision).
-    background: SceneObject or None (static, visual only). floor_z: height of the floor plane
-    (default: the lowest object point).
+def write_mjcf(scene, out_dir: str | Path, *, timestep: float = 0.002, model_name: str = "psimap_scene") -> Path:
+    """Write `out_dir/scene.xml` and `out_dir/assets/*` of `scene` (exporters.formats.ExportScene);
+    returns the scene.xml path. The background is visual only; the floor is a plane at scene.floor_z.
     """
     from psimap.exporters.objfile import write_plain, write_textured_obj
+    from psimap.exporters.roles import Role
 
+    objects, background, floor_z = scene.objects, scene.background, scene.floor_z
     out = Path(out_dir)
     assets = out / "assets"
     assets.mkdir(parents=True, exist_ok=True)
-    if floor_z is None:
-        lows = [float(o.mesh.bounds[0, 2]) for o in objects]
-        floor_z = min(lows) if lows else 0.0
 
     root = ET.Element("mujoco", model=model_name)
     ET.SubElement(root, "compiler", angle="radian", meshdir="assets", texturedir="assets",
@@ -81,8 +78,8 @@ def write_mjcf(objects, out_dir: str | Path, *, background=None, floor_z: float 
     for o in objects:
         ph = o.physics
         com = np.asarray(ph.com, np.float64)
-        body = ET.SubElement(world, "body", name=o.name, pos=_f(com))
-        if not o.fixed:     # a fixed object is welded to the world: no joint, its mass never enters
+        body = ET.SubElement(world, "body", name=o.name, pos=_f(com + scene.offset(o)))
+        if o.role is Role.DYNAMIC:     # a static object is welded to the world: no joint, no mass
             ET.SubElement(body, "freejoint", name=f"{o.name}_joint")
             ET.SubElement(body, "inertial", pos="0 0 0", quat=_f(rotmat_to_quat(ph.principal_axes)),
                           mass=_f(ph.mass), diaginertia=_f(_balanced(ph.principal_inertia)))

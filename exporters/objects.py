@@ -2,16 +2,19 @@
 
 `build_object(mesh, label, instance_id, ...)`: repair -> completion hook -> decimation to an error
 budget -> UV + texture -> collision geometry -> mass properties. An object that cannot be made
-sound (flat, sliver, no volume, cannot be closed) comes back with `.skipped` set to the reason and
-never reaches a writer. `extract_objects(scene)` does this for every instance of a checkpoint.
+sound (flat, sliver, no volume, cannot be closed) comes back with role Role.SKIPPED, its Reason and
+`why`, and never reaches a writer. `extract_objects(scene)` does this for every instance of a
+checkpoint.
 """
 from __future__ import annotations
 
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+from psimap.exporters.roles import Reason, Role
 
 
 # Hull cap of static furniture's colliders (dynamic objects: finish_object's max_hulls, 8). What
@@ -22,25 +25,9 @@ STATIC_MAX_HULLS = 32
 
 
 @dataclass
-class SceneObject:
-    """One exported object. mesh: trimesh.Trimesh in metres, world frame (textured when baked)."""
+class Measurements:
+    """What the asset steps did to one object and how well: report.json's per-object numbers."""
 
-    instance_id: int
-    label: str
-    mesh: object
-    semantic_id: int = 0
-    static: bool = False                    # background: no mass, no freejoint
-    fixed: bool = False                     # an object exported static (collider, no freejoint)
-    fixed_reason: str = ""                  # why (static class, too little evidence)
-    surfel_count: int = -1                  # surfels of the checkpoint behind it (-1: not from one)
-    collision: object | None = None         # psimap.exporters.collision.Collision
-    physics: object | None = None           # psimap.exporters.physics.Physics
-    visual_mesh: object | None = None       # seam-split copy of mesh that uv / vertex_rgb index
-    uv: np.ndarray | None = None            # [V, 2] per visual_mesh vertex
-    texture: np.ndarray | None = None       # uint8 [S, S, 3]
-    vertex_rgb: np.ndarray | None = None    # [V, 3] float fallback colours (per visual vertex)
-    texture_source: str = "none"            # "views" | "mesh" | "vertex" | "none"
-    texture_coverage: float = 0.0           # fraction of texels some view saw
     faces_before: int = 0
     faces_after: int = 0
     decimation_error: float = 0.0           # metres (symmetric Hausdorff)
@@ -50,11 +37,49 @@ class SceneObject:
     completed: bool = False
     completion_method: str = "none"
     repair_steps: list = field(default_factory=list)
-    skipped: str = ""                       # reason the object is not exported ("" = exported)
-    source: object | None = field(default=None, repr=False)   # input mesh until finish_object
     timings: dict = field(default_factory=dict, repr=False)   # seconds per asset step
+
+
+@dataclass
+class SceneObject:
+    """One exported object. mesh: trimesh.Trimesh in metres, world frame (textured when baked).
+
+    Inputs (what the checkpoint says): instance_id, label, semantic_id, surfel_count. Role: one of
+    Role with the Reason code and `why` in words (Role.DYNAMIC needs no reason). Asset: the solid,
+    its texture, collider and mass. Measurements: `measured`.
+    """
+
+    instance_id: int
+    label: str
+    mesh: object
+    semantic_id: int = 0
+    surfel_count: int = -1                  # surfels of the checkpoint behind it (-1: not from one)
+    role: Role = Role.DYNAMIC
+    reason: Reason | None = None
+    why: str = ""                           # the reason in words, as report.json writes it
+    collision: object | None = None         # psimap.exporters.collision.Collision
+    physics: object | None = None           # psimap.exporters.physics.Physics
+    visual_mesh: object | None = None       # seam-split copy of mesh that uv / vertex_rgb index
+    uv: np.ndarray | None = None            # [V, 2] per visual_mesh vertex
+    texture: np.ndarray | None = None       # uint8 [S, S, 3]
+    vertex_rgb: np.ndarray | None = None    # [V, 3] float fallback colours (per visual vertex)
+    texture_source: str = "none"            # "views" | "mesh" | "vertex" | "none"
+    texture_coverage: float = 0.0           # fraction of texels some view saw
     solid_pitch: float = 0.0                # voxel (m) of the solid it was closed as (0: not voxelised)
     solid_kind: str = ""                    # how (exporters.solidify): "enclosed" | "carved" | "shell" | ""
+    measured: Measurements = field(default_factory=Measurements)
+    source: object | None = field(default=None, repr=False)   # input mesh until finish_object
+
+    def skip(self, reason: Reason, why: str) -> None:
+        """Leave the object out of the export (it never reaches a writer)."""
+        self.role, self.reason, self.why = Role.SKIPPED, reason, why
+
+    def make_static(self, reason: Reason, why: str) -> None:
+        """Export the object as a collider welded to the world."""
+        self.role, self.reason, self.why = Role.STATIC, reason, why
+
+    def make_dynamic(self) -> None:
+        self.role, self.reason, self.why = Role.DYNAMIC, None, ""
 
     @property
     def name(self) -> str:
@@ -78,7 +103,7 @@ class SceneObject:
 
 
 def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, views=None,
-                 source_textured=None, completion: str = "auto", context: dict | None = None,
+                 source_textured=None, completion: str = "auto", context=None,
                  decimation_budget: float | None = None, collision_tolerance: float | None = None,
                  max_hulls: int = 8, densities: dict | None = None, texel: float = 0.001,
                  resolution: float | None = None, seed: int = 0) -> SceneObject:
@@ -86,7 +111,7 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
 
     mesh: trimesh.Trimesh (metres, world frame). views: list of texture.View to bake from;
     source_textured: a textured trimesh to transfer colour from (scans); else vertex colours of
-    `mesh` (if any). completion: "auto" calls psimap.completion, "none" skips it.
+    `mesh` (if any). completion and context: as prepare_solid's.
     resolution: size (m) of the finest detail the source resolves (TSDF voxel): decimation budget
     and collision tolerance are never asked to be finer than it.
     """
@@ -98,49 +123,58 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
 
 
 def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, completion: str = "auto",
-                  context: dict | None = None, resolution: float | None = None) -> SceneObject:
+                  context=None, support_z: float | None = None, surfel_points=None, carve_views=None,
+                  resolution: float | None = None) -> SceneObject:
     """Steps 2-3: clean, complete and close `mesh` into a sound watertight solid (obj.mesh), or an
-    object with .skipped set. The solid can still be edited (overlaps, support) before
-    `finish_object`."""
+    object with role Role.SKIPPED. The solid can still be edited (overlaps, support) before
+    `finish_object`.
+
+    completion: "auto" (psimap.completion's tiers), "none" (skipped) or the name of one registered
+    method (psimap.completion.complete says what running one method means); context: the
+    psimap.completion.CompletionContext of the object (its label and method are set here).
+    With `resolution` (the source's voxel) an open scan is closed as the voxel solid it encloses
+    (exporters.solidify), carved by `carve_views` (texture.View) around `surfel_points` [P, 3], down
+    to the support plane at height `support_z`, on which the solid is then made to rest.
+    """
     from psimap.exporters.repair import repair_mesh
 
     obj = SceneObject(int(instance_id), str(label), mesh, semantic_id=int(semantic_id))
     obj.source = mesh
-    obj.faces_before = int(len(getattr(mesh, "faces", [])))
+    obj.measured.faces_before = int(len(getattr(mesh, "faces", [])))
     # clean first (floaters, degenerate faces), let completion close a partial scan, then require
     # a sound watertight solid
     t0 = time.perf_counter()
     pre = repair_mesh(mesh, need_volume=False)
     if not pre.ok:
-        obj.skipped = f"repair: {pre.reason}"
+        obj.skip(Reason.REPAIR, f"repair: {pre.reason}")
         return obj
     m = pre.mesh
-    if completion == "auto":
-        from psimap.completion import complete
+    if completion != "none":
+        from psimap.completion import CompletionContext, complete
 
         t1 = time.perf_counter()
-        res = complete(m, dict(context or {}, label=label, instance_id=int(instance_id)))
-        obj.timings["completion_s"] = time.perf_counter() - t1
-        obj.completed, obj.completion_method = bool(res.completed), str(res.method)
+        res = complete(m, replace(context or CompletionContext(), label=label, method=completion))
+        obj.measured.timings["completion_s"] = time.perf_counter() - t1
+        obj.measured.completed, obj.measured.completion_method = bool(res.completed), str(res.method)
         if res.completed and res.mesh is not None:
             m = res.mesh
-    support = (context or {}).get("support_z")
+    support = support_z
     # a fused (open) scan is closed as the voxel solid it encloses, at the source's resolution
     solid_kw = {}
     if resolution:
         from psimap.exporters.solidify import solid_pitch
 
-        solid_kw = {"pitch": solid_pitch(m, resolution), "support_z": support,
-                    "points": (context or {}).get("surfel_points"), "views": (context or {}).get("carve_views")}
+        solid_kw = {"pitch": solid_pitch(m, resolution), "support_z": support, "points": surfel_points,
+                    "views": carve_views}
     rep = repair_mesh(m, need_volume=True, **solid_kw)
-    obj.repair_steps = pre.steps + rep.steps
-    if not rep.ok and obj.completed:         # a bad completion must not lose the object
-        obj.repair_steps.append(f"completion discarded: {rep.reason}")
-        obj.completed = False
+    obj.measured.repair_steps = pre.steps + rep.steps
+    if not rep.ok and obj.measured.completed:         # a bad completion must not lose the object
+        obj.measured.repair_steps.append(f"completion discarded: {rep.reason}")
+        obj.measured.completed = False
         rep = repair_mesh(pre.mesh, need_volume=True, **solid_kw)
-        obj.repair_steps += rep.steps
+        obj.measured.repair_steps += rep.steps
     if not rep.ok:
-        obj.skipped = f"repair: {rep.reason}"
+        obj.skip(Reason.REPAIR, f"repair: {rep.reason}")
         return obj
     m = rep.mesh
     if "solidify" in getattr(m, "metadata", {}):
@@ -150,9 +184,9 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
     if support is not None:
         m, grew = rest_on_support(m, float(support))
         if grew:
-            obj.repair_steps.append("extended down to its support")
+            obj.measured.repair_steps.append("extended down to its support")
     obj.mesh = m
-    obj.timings["repair_s"] = time.perf_counter() - t0 - obj.timings.get("completion_s", 0.0)
+    obj.measured.timings["repair_s"] = time.perf_counter() - t0 - obj.measured.timings.get("completion_s", 0.0)
     return obj
 
 
@@ -167,7 +201,7 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     from psimap.exporters.decimate import decimate_to_budget, default_budget
     from psimap.exporters.physics import mass_properties
 
-    if obj.skipped:
+    if obj.role is Role.SKIPPED:
         obj.source = None
         return obj
     m, label, mesh = obj.mesh, obj.label, obj.source
@@ -179,24 +213,24 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
         collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
     t0 = time.perf_counter()
     dec = decimate_to_budget(m, decimation_budget, seed=seed)
-    obj.timings["decimation_s"] = time.perf_counter() - t0
+    obj.measured.timings["decimation_s"] = time.perf_counter() - t0
     m = dec.mesh
-    obj.faces_after = int(len(m.faces))
-    obj.decimation_error, obj.decimation_mean_error = dec.hausdorff, dec.mean_error
-    obj.decimation_budget = dec.budget
-    obj.watertight = bool(m.is_watertight)
-    if not obj.watertight:
-        obj.skipped = "decimation: result not watertight"
+    obj.measured.faces_after = int(len(m.faces))
+    obj.measured.decimation_error, obj.measured.decimation_mean_error = dec.hausdorff, dec.mean_error
+    obj.measured.decimation_budget = dec.budget
+    obj.measured.watertight = bool(m.is_watertight)
+    if not obj.measured.watertight:
+        obj.skip(Reason.DECIMATION, "decimation: result not watertight")
         return obj
     try:
         obj.physics = mass_properties(m, label, densities=densities)
     except Exception as e:  # PsimapError: no volume
-        obj.skipped = f"physics: {e}"
+        obj.skip(Reason.PHYSICS, f"physics: {e}")
         return obj
     t0 = time.perf_counter()
     obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed,
                                        obstacles=obstacles)
-    obj.timings["collision_s"] = time.perf_counter() - t0
+    obj.measured.timings["collision_s"] = time.perf_counter() - t0
     if obj.collision.kind == "sphere":
         # a sphere collider means the object is a ball: its COM is the centre (a reconstruction's
         # sub-millimetre COM offset would otherwise roll a ball that rests in the scan)
@@ -208,7 +242,7 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
             views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, MAX_BAKE_VIEWS).round().astype(int))]
     t0 = time.perf_counter()
     _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
-    obj.timings["texture_s"] = time.perf_counter() - t0
+    obj.measured.timings["texture_s"] = time.perf_counter() - t0
     return obj
 
 
@@ -295,19 +329,20 @@ def build_background(mesh, *, views=None, label: str = "background", decimation_
     from psimap.exporters.decimate import decimate_to_budget
     from psimap.exporters.repair import repair_mesh
 
-    obj = SceneObject(0, label, mesh, static=True)
-    obj.faces_before = int(len(getattr(mesh, "faces", [])))
+    obj = SceneObject(0, label, mesh, role=Role.STATIC, reason=Reason.ENVIRONMENT,
+                      why="static environment: floor, walls and unlabelled surfaces")
+    obj.measured.faces_before = int(len(getattr(mesh, "faces", [])))
     vertex_rgb = _vertex_rgb(mesh)
     rep = repair_mesh(mesh, need_volume=False)
     if not rep.ok:
-        obj.skipped = f"repair: {rep.reason}"
+        obj.skip(Reason.REPAIR, f"repair: {rep.reason}")
         return obj
     budget = decimation_budget if decimation_budget is not None else 0.01
     dec = decimate_to_budget(rep.mesh, budget, seed=seed)
     m = dec.mesh
-    obj.faces_after, obj.decimation_error = int(len(m.faces)), dec.hausdorff
-    obj.decimation_mean_error, obj.decimation_budget = dec.mean_error, dec.budget
-    obj.watertight = bool(m.is_watertight)
+    obj.measured.faces_after, obj.measured.decimation_error = int(len(m.faces)), dec.hausdorff
+    obj.measured.decimation_mean_error, obj.measured.decimation_budget = dec.mean_error, dec.budget
+    obj.measured.watertight = bool(m.is_watertight)
     if len(m.faces) > MAX_ATLAS_FACES:
         # a room-sized mesh: xatlas took 201 s on a 137 k-face room (the demo scene), the colour per
         # vertex from the views 2.4 s, and the background is context, not an asset
@@ -382,10 +417,10 @@ def extract_objects(scene, *, completion: str = "auto", include_skipped: bool = 
     """One SceneObject per thing instance of a trained scene (psimap.scene.Scene).
 
     Meshes come from TSDF fusion of the rendered depth masked by the rendered instance id (step 1),
-    then go through the asset steps. Skipped objects (with .skipped) only when include_skipped.
+    then go through the asset steps. Skipped objects (Role.SKIPPED) only when include_skipped.
     """
     objs, _ = extract_scene(scene, completion=completion, progress=progress, **kw)
-    return [o for o in objs if include_skipped or not o.skipped]
+    return [o for o in objs if include_skipped or o.role is not Role.SKIPPED]
 
 
 def extract_scene(scene, *, completion: str = "auto", progress: bool = False, seed: int = 0,
@@ -412,6 +447,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     import trimesh
     from tqdm import tqdm
 
+    from psimap.completion import CompletionContext
     from psimap.exporters.consistency import (cut_by_colliders, floor_from_background, make_consistent,
                                               neighbour_collider_parts)
     from psimap.exporters.instance_meshes import instance_meshes
@@ -428,8 +464,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     objs, views_of = [], {}
     for item in tqdm(inst.things, desc="object solids", disable=not progress, leave=False):
         if item.mesh is None or len(item.mesh.faces) == 0:
-            objs.append(SceneObject(item.instance_id, item.label, item.mesh, semantic_id=item.semantic_id,
-                                    skipped="no surface fused for this instance"))
+            objs.append(SceneObject(item.instance_id, item.label, item.mesh, semantic_id=item.semantic_id))
+            objs[-1].skip(Reason.NO_SURFACE, "no surface fused for this instance")
             continue
         views = views_of[item.instance_id] = inst.views_for(item.instance_id)
         members = item.members if item.members is not None else iid == item.instance_id
@@ -439,28 +475,27 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             # it stands on the floor: on the floor plane the scene is exported with (the surfels
             # under one object and the background's dominant plane differ by a centimetre)
             support = floor_z
-        context = {"background": inst.background, "voxel_size": inst.voxel_size,
-                   "support_z": support,
-                   "support_planes": [] if support is None else [((0.0, 0.0, 1.0), support)],
-                   "neighbours": [t.mesh for t in inst.things if t is not item and t.mesh is not None
-                                  and len(t.mesh.faces)],
-                   "cameras": [(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
-                   "depths": [v.depth for v in views], "images": [v.rgb for v in views],
-                   "carve_views": inst.views,
-                   "surfel_points": disc_points(*(sf[k][members] for k in ("means", "quats", "scales",
-                                                                            "opacities")))}
+        context = CompletionContext(
+            background=inst.background, voxel_size=inst.voxel_size,
+            support_planes=[] if support is None else [((0.0, 0.0, 1.0), support)],
+            neighbours=[t.mesh for t in inst.things if t is not item and t.mesh is not None and len(t.mesh.faces)],
+            cameras=[(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
+            depths=[v.depth for v in views], images=[v.rgb for v in views])
+        surfel_points = disc_points(*(sf[k][members] for k in ("means", "quats", "scales", "opacities")))
         objs.append(prepare_solid(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,
-                                  completion=completion, context=context, resolution=inst.voxel_size))
+                                  completion=completion, context=context, support_z=support,
+                                  surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size))
         objs[-1].surfel_count = int(np.count_nonzero(members))
         if item.dropped_surfels:
-            objs[-1].repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away from its "
-                                            "main body left out")
+            objs[-1].measured.repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away "
+                                                     "from its main body left out")
     t0 = time.perf_counter()
     make_consistent(objs, floor_z)
     timings["consistency_s"] = time.perf_counter() - t0
     # biggest first: each smaller solid is cut by the colliders already made around it
     finished = []
-    order = sorted((o for o in objs if not o.skipped), key=lambda o: (-float(o.mesh.volume), o.instance_id))
+    order = sorted((o for o in objs if o.role is not Role.SKIPPED),
+                   key=lambda o: (-float(o.mesh.volume), o.instance_id))
     for o in tqdm(order, desc="object assets", disable=not progress, leave=False):
         t0 = time.perf_counter()
         cut_by_colliders(o, finished)
@@ -472,14 +507,14 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     background = inst.background
     # labels too big to be objects stay in the scene as static background (what they covered is
     # still there to see)
-    room_sized = [t.mesh for t, o in zip(inst.things, objs) if o.skipped.startswith("spans") and t.mesh is not None]
+    room_sized = [t.mesh for t, o in zip(inst.things, objs) if o.reason is Reason.ROOM_SIZED and t.mesh is not None]
     if room_sized:
         background = trimesh.util.concatenate([m for m in [background, *room_sized] if m is not None])
     bg = None
     t0 = time.perf_counter()
     if background is not None and len(background.faces):
         bg = build_background(background, views=inst.views, seed=seed)
-        if bg.skipped:
+        if bg.role is Role.SKIPPED:
             bg = None
     timings["background_s"] = time.perf_counter() - t0
     return objs, bg

@@ -2,6 +2,7 @@
 
 OUT/
   scene.xml + assets/    (format "mjcf")     scene.usda + assets/ (format "usd")    scene.glb ("glb")
+                                    (the writers: exporters.formats.FORMATS)
   meshes/<name>.obj (+ .mtl, .png)  visual mesh of every object, world frame
   collision/<name>_<k>.obj          convex collision parts (world frame; primitives as meshes)
   report.json                       per object + the simulation check (deterministic)
@@ -12,13 +13,13 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from psimap import PsimapError
-
-FORMATS = ("mjcf", "usd", "glb")
+from psimap.exporters.roles import Reason, Role
 
 # A thing reconstructed from fewer surfels than this is exported static (with the reason): ~5 discs
 # per side of a box leave its underside, which decides how it rests, a guess. On the trained demo
@@ -53,9 +54,11 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
-    SceneObject (background: optional static SceneObject). format: "mjcf" | "usd" | "glb" | "all"
-    or a list. check: run the MuJoCo simulation check (on the MJCF, always written for it); a load
-    failure raises PsimapError, a failed settle is reported (report["check"]["passed"]).
+    SceneObject (background: optional static SceneObject). completion: "auto", "none" or one
+    registered method by name, for every object (psimap.completion.complete). format: a name of the
+    writer registry (exporters.formats.FORMATS: "mjcf", "usd", "glb"), "all" or a list. check: run
+    the MuJoCo simulation check (on an MJCF written for it); a load failure raises PsimapError, a
+    failed settle is reported (report["check"]["passed"]).
     static_classes: class names exported static (collider, no freejoint / rigid body); None = the
     default heavy-furniture list (exporters.physics.STATIC_CLASSES), an empty set = all dynamic.
     min_rigid_surfels: an object a checkpoint holds fewer surfels of is exported static with the
@@ -67,16 +70,19 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     are pinned; penetration, NaN and explosions still fail the check.
     overwrite: write into an `out_dir` psimap did not write (psimap.io_utils rules: an earlier export
     there is replaced; with overwrite, other files are kept and only same-named ones replaced).
+
+    Roles are decided on copies of the objects (the ones passed in keep theirs). The order:
+    objects -> roles -> meshes/ and collision/ (as reconstructed) -> settle check (pins, nudges) ->
+    the nudges applied to the export scene once -> every writer, in registry order.
     """
+    from psimap.completion.methods import Choices
+    from psimap.exporters.formats import FORMATS, ExportScene, format_names, load
     from psimap.exporters.objects import SceneObject, extract_scene
     from psimap.io_utils import atomic_dir, check_output_dir
 
-    fmts = list(FORMATS) if format == "all" else ([format] if isinstance(format, str) else list(format))
-    bad = [f for f in fmts if f not in FORMATS]
-    if bad:
-        raise PsimapError(f"unknown export format {bad[0]!r} (choose from {', '.join(FORMATS)}, all)")
-    if completion not in ("auto", "none"):
-        raise PsimapError(f"completion must be 'auto' or 'none', got {completion!r}")
+    fmts = format_names(format)
+    if completion not in Choices():
+        raise PsimapError(f"unknown completion {completion!r} (choose from {', '.join(Choices())})")
     check_output_dir(out_dir, "export", overwrite=overwrite)       # before the work, not after it
     t0 = time.perf_counter()
     scene_steps: dict = {}
@@ -89,79 +95,40 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                                              seed=seed, timings=scene_steps, static_classes=static_classes,
                                              **kw)
     t_objects = time.perf_counter() - t0
-    objs = [o for o in all_objs if not o.skipped and not o.static]
-    mark_fixed(objs, static_classes, min_rigid_surfels)
+    # the environment passed in the list is no object (it is `background`)
+    objs = [replace(o) for o in all_objs if o.role is not Role.SKIPPED and o.reason is not Reason.ENVIRONMENT]
+    assign_roles(objs, static_classes, min_rigid_surfels)
     names = [o.name for o in objs]
     if len(set(names)) != len(names):
         raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
-    floor_z = floor_height(objs, background)
+    scene = ExportScene(tuple(objs), background, floor_height(objs, background))
     timings = {"objects_s": t_objects, **scene_steps}
     for o in all_objs:      # per asset step, summed over the objects
-        for k, v in o.timings.items():
+        for k, v in o.measured.timings.items():
             timings[k] = timings.get(k, 0.0) + v
-    report = {"format": sorted(fmts), "floor_z": floor_z, "objects": [], "skipped": [],
-              "background": None}
+    report = {"format": sorted(fmts), "floor_z": scene.floor_z, "objects": [], "background": None,
+              "skipped": [{"name": o.name, "instance_id": int(o.instance_id), "class": o.label, "reason": o.why}
+                          for o in all_objs if o.role is Role.SKIPPED]}
     with atomic_dir(out_dir, "export", overwrite=overwrite) as tmp:
-        files = _write_meshes(objs, background, tmp)
-        for o in all_objs:
-            if o.skipped:
-                report["skipped"].append({"name": o.name, "instance_id": int(o.instance_id),
-                                          "class": o.label, "reason": o.skipped})
+        files = _write_meshes(scene, tmp)
         from psimap.exporters.report import object_entry, write_report
 
         t = time.perf_counter()
-        if "mjcf" in fmts or check:
-            from psimap.exporters.mjcf import write_mjcf
-
-            mj_dir = tmp if "mjcf" in fmts else tmp / ".check"
-            xml = write_mjcf(objs, mj_dir, background=background, floor_z=floor_z)
-            timings["mjcf_s"] = time.perf_counter() - t
-            if check:
-                from psimap.sim.check import check_mjcf
-
-                t_check = time.perf_counter()
-                res = check_mjcf(xml)
-                pinned = {}
-                for _ in range(PIN_ROUNDS if pin_unstable else 0):
-                    movers = [o for o in objs if o.name in res["unstable"] and not o.fixed]
-                    if res["passed"] or res["nan"] or res["exploded"] or res["penetrating"] or not movers:
-                        break
-                    for o in movers:
-                        moved = res["drift"].get(o.name, res["fell"].get(o.name, 0.0))
-                        o.fixed = True
-                        o.fixed_reason = pinned[o.name] = (f"unstable in the settle check (moved "
-                                                           f"{moved * 100:.1f} cm in 2 s)")
-                    xml = write_mjcf(objs, mj_dir, background=background, floor_z=floor_z)
-                    res = check_mjcf(xml)
-                res["pinned"] = pinned
-                timings["check_s"] = time.perf_counter() - t_check
-                timings["sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
-                report["check"] = res
-            if "mjcf" not in fmts:
-                import shutil
-
-                shutil.rmtree(mj_dir)
+        if check:
+            report["check"] = settle_check(scene, tmp / ".check", pin_unstable=pin_unstable, timings=timings)
+            scene = scene.nudged(report["check"]["nudges"])
         # after the check: it may have pinned objects static
-        report["objects"] = [object_entry(o, files[o.name]) for o in objs]
+        report["objects"] = [object_entry(o, files[o.name]) for o in scene.objects]
         if background is not None:
             report["background"] = object_entry(background, files.get(background.name, {}))
-        if "usd" in fmts:
-            from psimap.exporters.usd import validate_usd, write_usd
-
-            t_usd = time.perf_counter()
-            usd_path = write_usd(objs, tmp, background=background, floor_z=floor_z,
-                                 nudges=report.get("check", {}).get("nudges", {}))
-            report["usd_validation"] = validate_usd(usd_path)
-            timings["usd_s"] = time.perf_counter() - t_usd
-            if report["usd_validation"]["errors"]:
-                raise PsimapError(f"USD validation failed: {report['usd_validation']['errors'][0]}")
-        if "glb" in fmts:
-            from psimap.exporters.glb import write_glb
-
-            t_glb = time.perf_counter()
-            write_glb(objs, tmp / "scene.glb", background=background,
-                      nudges=report.get("check", {}).get("nudges", {}))
-            timings["glb_s"] = time.perf_counter() - t_glb
+        for name in fmts:
+            fmt, t_fmt = FORMATS[name], time.perf_counter()
+            main_file = load(fmt.writer)(scene, tmp)
+            if fmt.validator:
+                found = report[f"{name}_validation"] = load(fmt.validator)(main_file)
+                if found["errors"]:
+                    raise PsimapError(f"{fmt.title} validation failed: {found['errors'][0]}")
+            timings[f"{name}_s"] = time.perf_counter() - t_fmt
         timings["writers_s"] = time.perf_counter() - t
         timings["total_s"] = time.perf_counter() - t0
         write_report(tmp / "report.json", report)
@@ -171,31 +138,65 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     return report
 
 
-def mark_fixed(objs, static_classes=None, min_rigid_surfels: int = MIN_RIGID_SURFELS) -> None:
-    """Set `.fixed` and `.fixed_reason` for this export: objects of a static class, and objects seen
-    too little to be a reliable rigid body (fewer than min_rigid_surfels surfels in the checkpoint).
-    Recomputed on every call (the same objects can be exported with other rules)."""
+def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: dict | None = None) -> dict:
+    """The MuJoCo check (psimap.sim.check.check_mjcf) of `scene` (ExportScene), on an MJCF written
+    to `work_dir` for it and removed after. Returns the check's report with "pinned" {name:
+    reason}: with pin_unstable, dynamic objects that moved or fell are made static (Reason.UNSTABLE,
+    on scene's objects) and the scene is checked again, up to PIN_ROUNDS times. The nudges it
+    reports are those of the last round, for the scene as its objects' roles now stand.
+    timings: receives check_s and sim_seconds_per_wall_second."""
+    import shutil
+
+    from psimap.exporters.mjcf import write_mjcf
+    from psimap.sim.check import check_mjcf
+
+    timings = {} if timings is None else timings
+    t_check = time.perf_counter()
+    res = check_mjcf(write_mjcf(scene, work_dir))
+    pinned = {}
+    for _ in range(PIN_ROUNDS if pin_unstable else 0):
+        movers = [o for o in scene.objects if o.name in res["unstable"] and o.role is Role.DYNAMIC]
+        if res["passed"] or res["nan"] or res["exploded"] or res["penetrating"] or not movers:
+            break
+        for o in movers:
+            moved = res["drift"].get(o.name, res["fell"].get(o.name, 0.0))
+            pinned[o.name] = f"unstable in the settle check (moved {moved * 100:.1f} cm in 2 s)"
+            o.make_static(Reason.UNSTABLE, pinned[o.name])
+        res = check_mjcf(write_mjcf(scene, work_dir))
+    res["pinned"] = pinned
+    shutil.rmtree(work_dir)
+    timings["check_s"] = time.perf_counter() - t_check
+    timings["sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
+    return res
+
+
+def assign_roles(objs, static_classes=None, min_rigid_surfels: int = MIN_RIGID_SURFELS) -> None:
+    """The role of each object (none skipped, not the environment) for this export: static for
+    objects of a static class and objects seen too little to be a reliable rigid body (fewer than
+    min_rigid_surfels surfels in the checkpoint), dynamic otherwise. Decided anew on every call (the
+    same objects can be exported with other rules)."""
     from psimap.exporters.physics import is_static_class
 
     for o in objs:
-        o.fixed, o.fixed_reason = False, ""
+        o.make_dynamic()
         if is_static_class(o.label, static_classes):
-            o.fixed, o.fixed_reason = True, f"static furniture class: '{o.label}'"
+            o.make_static(Reason.STATIC_CLASS, f"static furniture class: '{o.label}'")
         elif 0 <= o.surfel_count < min_rigid_surfels:
-            o.fixed, o.fixed_reason = True, (f"too little evidence for a rigid body: {o.surfel_count} "
-                                             f"surfels < {min_rigid_surfels}")
+            o.make_static(Reason.LITTLE_EVIDENCE, f"too little evidence for a rigid body: {o.surfel_count} "
+                                                  f"surfels < {min_rigid_surfels}")
 
 
 
 
-def _write_meshes(objs, background, root: Path) -> dict:
-    """meshes/ (textured OBJ, world frame) and collision/ (convex parts, world frame)."""
+def _write_meshes(scene, root: Path) -> dict:
+    """meshes/ (textured OBJ) and collision/ (convex parts) of every object and the background, in
+    the world frame as reconstructed (report.json's bounds; the settle nudges are the scene files')."""
     from psimap.exporters.objfile import write_plain, write_textured_obj
 
     (root / "meshes").mkdir(parents=True, exist_ok=True)
     (root / "collision").mkdir(parents=True, exist_ok=True)
     files = {}
-    for o in objs + ([background] if background is not None else []):
+    for o in list(scene.objects) + ([scene.background] if scene.background is not None else []):
         write_textured_obj(np.asarray(o.visual.vertices, np.float64), o.visual.faces, o.uv, o.texture,
                            root / "meshes" / f"{o.name}.obj", o.name, vertex_rgb=o.vertex_rgb)
         entry = {"mesh": f"meshes/{o.name}.obj", "collision": []}

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from psimap.exporters.roles import Reason, Role
+
 
 def _r(x, digits: int = 6):
     if isinstance(x, dict):
@@ -30,16 +32,18 @@ def _r(x, digits: int = 6):
 
 def object_entry(obj, files: dict) -> dict:
     """Report entry of one SceneObject; files: {"mesh": ..., "collision": [...]} relative paths."""
+    m = obj.measured
     e = {
         "name": obj.name, "instance_id": int(obj.instance_id), "class": obj.label,
-        "semantic_id": int(obj.semantic_id), "static": bool(obj.static or obj.fixed),
-        "static_reason": obj.fixed_reason or None, "surfels": int(obj.surfel_count),
-        "skipped": obj.skipped or None,
-        "faces_before": int(obj.faces_before), "faces_after": int(obj.faces_after),
-        "decimation_error_m": obj.decimation_error, "decimation_mean_error_m": obj.decimation_mean_error,
-        "decimation_budget_m": obj.decimation_budget,
-        "watertight": bool(obj.watertight), "completed": bool(obj.completed),
-        "completion_method": obj.completion_method, "repair": list(obj.repair_steps),
+        "semantic_id": int(obj.semantic_id), "static": obj.role is Role.STATIC,
+        # the environment is static without a reason to give
+        "static_reason": obj.why if obj.role is Role.STATIC and obj.reason is not Reason.ENVIRONMENT else None,
+        "surfels": int(obj.surfel_count), "skipped": obj.why if obj.role is Role.SKIPPED else None,
+        "faces_before": int(m.faces_before), "faces_after": int(m.faces_after),
+        "decimation_error_m": m.decimation_error, "decimation_mean_error_m": m.decimation_mean_error,
+        "decimation_budget_m": m.decimation_budget,
+        "watertight": bool(m.watertight), "completed": bool(m.completed),
+        "completion_method": m.completion_method, "repair": list(m.repair_steps),
         "texture": obj.texture_source, "texture_coverage": obj.texture_coverage,
     }
     if obj.mesh is not None and len(getattr(obj.mesh, "vertices", [])):

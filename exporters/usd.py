@@ -7,7 +7,7 @@ colliders (CollisionAPI; convex parts with MeshCollisionAPI approximation convex
 UsdGeom Sphere / Cube / Cylinder). The class goes on the object through UsdSemantics.LabelsAPI
 ("class" taxonomy, what Isaac Sim's labelling reads) and the instance id as `psimap:instanceId`.
 The background is static (no RigidBodyAPI) with a triangle-mesh collider (approximation none);
-so is a fixed object (static furniture, barely seen things): colliders without RigidBodyAPI / MassAPI.
+so is a static object (furniture, barely seen or pinned things): colliders without RigidBodyAPI / MassAPI.
 """
 from __future__ import annotations
 
@@ -88,14 +88,14 @@ def _visual(stage, parent: str, obj, origin: np.ndarray, assets: Path, rel_asset
     return mesh
 
 
-def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float = 0.0,
-              nudges: dict | None = None) -> Path:
-    """Write `out_dir/scene.usda` (+ textures in `out_dir/assets/`); returns its path.
-
-    nudges: {object name: dz} lifts applied by the MJCF penetration check, so every format agrees.
-    """
+def write_usd(scene, out_dir: str | Path) -> Path:
+    """Write `out_dir/scene.usda` (+ textures in `out_dir/assets/`) of `scene`
+    (exporters.formats.ExportScene); returns its path."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdSemantics, Vt
 
+    from psimap.exporters.roles import Role
+
+    objects, background, floor_z = scene.objects, scene.background, scene.floor_z
     out = Path(out_dir)
     assets = out / "assets"
     assets.mkdir(parents=True, exist_ok=True)
@@ -106,10 +106,9 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
     UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
     world = UsdGeom.Xform.Define(stage, "/World")
     stage.SetDefaultPrim(world.GetPrim())
-    scene = UsdPhysics.Scene.Define(stage, "/World/PhysicsScene")
-    scene.CreateGravityDirectionAttr(Gf.Vec3f(0, 0, -1))
-    scene.CreateGravityMagnitudeAttr(9.81)
-    nudges = nudges or {}
+    physics = UsdPhysics.Scene.Define(stage, "/World/PhysicsScene")
+    physics.CreateGravityDirectionAttr(Gf.Vec3f(0, 0, -1))
+    physics.CreateGravityMagnitudeAttr(9.81)
 
     # floor: a static thin box collider (a plane has no extent validators accept everywhere)
     floor = UsdGeom.Cube.Define(stage, "/World/floor")
@@ -136,11 +135,11 @@ def write_usd(objects, out_dir: str | Path, *, background=None, floor_z: float =
 
     for o in objects:
         ph = o.physics
-        com = np.asarray(ph.com, np.float64) + np.array([0, 0, nudges.get(o.name, 0.0)])
+        com = np.asarray(ph.com, np.float64) + scene.offset(o)
         x = UsdGeom.Xform.Define(stage, f"/World/{o.name}")
         x.AddTranslateOp().Set(Gf.Vec3d(*com))
         prim = x.GetPrim()
-        if not o.fixed:     # a fixed object is a static collider: CollisionAPI only, like the background
+        if o.role is Role.DYNAMIC:     # a static object is a collider: CollisionAPI only, like the background
             UsdPhysics.RigidBodyAPI.Apply(prim)
             mass = UsdPhysics.MassAPI.Apply(prim)
             mass.CreateMassAttr(float(ph.mass))

@@ -7,6 +7,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+# stdlib-only registries: the names of the writers and of the completion methods (a writer or a
+# method's code is imported only when it runs)
+from psimap.completion.methods import Choices, method_names
+from psimap.exporters.formats import FORMATS
+
 
 def opt(default, help: str, **extra):
     """A dataclass field carrying its CLI help text."""
@@ -89,9 +94,14 @@ class MeshOptions:
 @dataclass
 class ExportOptions:
     ckpt: str = pos("trained scene checkpoint")
-    format: str = opt("mjcf", "output format (all = the three)", choices=["usd", "mjcf", "glb", "all"])
+    format: str = opt("mjcf", "output format (all = every one)", choices=[*FORMATS, "all"])
     out: str = opt("export", "output folder")
-    completion: str = opt("auto", "object completion: auto or none", choices=["auto", "none"])
+    completion: str = opt("auto", "object completion: auto (the methods tier by tier, the first that fits), "
+                                  "none, or one method for every object (kept when it gives a closed shape, "
+                                  "else the object is closed as observed): "
+                                  f"{', '.join(method_names(selectable=True, installed=False))} or one an "
+                                  "installed package adds (entry-point group psimap.completion)",
+                          choices=Choices(), metavar="METHOD")
     no_check: bool = opt(False, "skip the MuJoCo simulation check")
     densities: str = opt("", "JSON file {class name: kg/m^3} overriding the default density table")
     static_classes: str = opt("", "comma-separated classes exported static (no freejoint / rigid body); "

@@ -1,6 +1,31 @@
-"""Suite-wide settings."""
+"""Suite-wide settings and shared fixtures."""
+import numpy as np
+import pytest
 import torch
 
 # The suite's tensors are small: torch's intra-op thread pool only adds spin-waiting on a 2-core
 # machine (a 40-step panoptic fit took 3 s on one thread and 66 s on two).
 torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="session")
+def ring_checkpoint(tmp_path_factory):
+    """make(meshes, instance_ids, semantic_ids, classes, colors, target, radius, height, views) -> the
+    path of a scene.ckpt of `meshes` (psimap.scene.scene_from_meshes) seen by `views` 96x72 cameras
+    on a ring of `radius` at `height`, looking at `target`: a checkpoint for the export tests."""
+    def make(meshes, instance_ids, semantic_ids, classes, colors, target, radius=0.7, height=0.55, views=8):
+        from psimap.camera import look_at
+        from psimap.scene import scene_from_meshes
+
+        w, h = 96, 72
+        K = np.array([[80.0, 0, w / 2], [0, 80.0, h / 2], [0, 0, 1]])
+        c2ws = [look_at(np.array([radius * np.cos(a), radius * np.sin(a), height]), target)
+                for a in np.linspace(0, 2 * np.pi, views, endpoint=False)]
+        cams = {"K": np.stack([K] * views), "c2w": np.stack(c2ws), "width": w, "height": h,
+                "names": [f"c{i}" for i in range(views)]}
+        scene = scene_from_meshes(meshes, instance_ids, semantic_ids, classes, cams, colors=colors)
+        path = tmp_path_factory.mktemp("ckpt") / "scene.ckpt"
+        scene.save(path)
+        return path
+
+    return make

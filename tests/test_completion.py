@@ -7,6 +7,7 @@ import pytest
 import trimesh
 
 from psimap import PsimapError
+from psimap.completion import CompletionContext as Context
 from psimap.completion import CompletionResult, complete
 from psimap.completion.freespace import check_cameras, known_free
 from psimap.completion.meshops import (from_manifold, genus, is_solid, sample_surface, to_manifold,
@@ -43,7 +44,7 @@ def test_half_seen_sphere_completed_to_the_full_sphere():
     gt = trimesh.creation.icosphere(5, radius=0.05)
     gt.apply_translation([0, 0, 0.05])
     pts = seen_side(gt, [1, 0, 0.2], noise=0.0005)
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, support_planes=TABLE))
     assert isinstance(res, CompletionResult) and res.completed and res.method == "sphere"
     assert res.coverage < 0.9 and "coverage" in res.reason
     assert is_solid(res.mesh)
@@ -59,7 +60,7 @@ def test_half_seen_vase_completed_by_rotational_symmetry():
     gt = trimesh.creation.revolve(prof, sections=96)
     gt.apply_translation([0.3, -0.2, 0.0])
     pts = seen_side(gt, [0, -1, 0.3], noise=0.0005)
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, support_planes=TABLE))
     assert res.completed and res.method == "revolution", res.reason
     assert chamfer(res.mesh, gt) < 0.002
     assert np.allclose(res.mesh.bounds, gt.bounds, atol=0.004)
@@ -80,16 +81,16 @@ def test_object_against_wall_does_not_penetrate_it():
     gt = from_manifold(to_manifold(ball).trim_by_plane((0, -1, 0), -y0))
     pts = seen_side(gt, [0, -1, 0.2])
     wall = _wall(y0)
-    bare = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "sphere"})
+    bare = complete(None, Context(points=pts, voxel_size=VOXEL, method="sphere"))
     assert volume_of_intersection(bare.mesh, wall) > 1e-5      # the unconstrained fit does penetrate
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "background": wall})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, background=wall))
     assert res.completed, res.reason
     assert volume_of_intersection(res.mesh, wall) < 1e-9
     assert res.mesh.bounds[1, 1] <= y0 + 1e-6
     assert res.collision_volume < 1e-9
     assert chamfer(res.mesh, gt) < 0.002
     # Planes alone (no background mesh) give the same guarantee.
-    res2 = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": [((0, 1, 0), y0)]})
+    res2 = complete(None, Context(points=pts, voxel_size=VOXEL, support_planes=[((0, 1, 0), y0)]))
     assert res2.mesh.bounds[1, 1] <= y0 + 1e-6
 
 
@@ -102,9 +103,9 @@ def test_box_between_wall_and_neighbour_stays_clear_of_both():
     # Seen from the front-left: front, left side and top. The fitted box touches both obstacles.
     pts = seen_side(gt, [-0.5, -1, 0.6], noise=0.0005)
     pts_n = seen_side(neighbour, [0.3, -1, 0.6])
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE,
-                          "background": _wall(y0),
-                          "neighbours": [trimesh.convex.convex_hull(pts_n), neighbour]})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, support_planes=TABLE,
+                                 background=_wall(y0),
+                                 neighbours=[trimesh.convex.convex_hull(pts_n), neighbour]))
     assert res.completed and res.method == "box", res.reason
     assert volume_of_intersection(res.mesh, neighbour) < 2e-7
     assert volume_of_intersection(res.mesh, _wall(y0)) < 1e-9
@@ -114,42 +115,42 @@ def test_box_between_wall_and_neighbour_stays_clear_of_both():
 def test_fully_observed_object_is_returned_unchanged():
     gt = trimesh.creation.box([0.1, 0.08, 0.06])
     pts = sample_surface(gt, 0.003)
-    res = complete(gt, {"points": pts, "voxel_size": VOXEL})
+    res = complete(gt, Context(points=pts, voxel_size=VOXEL))
     assert res.completed is False and res.method == "none"
     assert res.mesh is gt
     assert "fully observed" in res.reason and res.coverage >= 0.9
     # Without points the mesh's own surface is the observation: also unchanged.
-    assert complete(gt, {}).mesh is gt
+    assert complete(gt, Context()).mesh is gt
 
 
 def test_empty_and_tiny_partials_are_skipped_with_a_reason():
-    res = complete(None, {"points": np.zeros((0, 3))})
+    res = complete(None, Context(points=np.zeros((0, 3))))
     assert not res.completed and res.method == "skipped" and "empty" in res.reason
-    res = complete(trimesh.Trimesh(), {})
+    res = complete(trimesh.Trimesh(), Context())
     assert not res.completed and "empty" in res.reason
     few = np.random.default_rng(0).random((10, 3)) * 0.05
-    res = complete(None, {"points": few, "voxel_size": VOXEL})
+    res = complete(None, Context(points=few, voxel_size=VOXEL))
     assert res.method == "skipped" and "tiny" in res.reason and "10 observed points" in res.reason
     speck = np.random.default_rng(0).random((500, 3)) * 0.005      # 5 mm speck, 5 mm voxels
-    res = complete(None, {"points": speck, "voxel_size": VOXEL})
+    res = complete(None, Context(points=speck, voxel_size=VOXEL))
     assert res.method == "skipped" and "extent" in res.reason
     # Non-finite rows are dropped, not propagated.
     nan_pts = np.full((100, 3), np.nan)
-    assert complete(None, {"points": nan_pts}).method == "skipped"
+    assert complete(None, Context(points=nan_pts)).method == "skipped"
 
 
 def test_invalid_input_raises_one_clear_error():
     with pytest.raises(PsimapError, match="points must be"):
-        complete(None, {"points": np.zeros((10, 2))})
+        complete(None, Context(points=np.zeros((10, 2))))
     with pytest.raises(PsimapError, match="unknown method"):
-        complete(None, {"points": np.zeros((10, 3)), "method": "magic"})
+        complete(None, Context(points=np.zeros((10, 3)), method="magic"))
     with pytest.raises(PsimapError, match="partial must be"):
-        complete("mesh.ply", {})
+        complete("mesh.ply", Context())
     pts = sample_surface(trimesh.creation.box([0.1, 0.1, 0.1]), 0.005)[:2000]
     with pytest.raises(PsimapError, match="cameras but"):
-        complete(None, {"points": pts, "voxel_size": VOXEL, "cameras": [None], "depths": []})
+        complete(None, Context(points=pts, voxel_size=VOXEL, cameras=[None], depths=[]))
     with pytest.raises(PsimapError, match="support_planes"):
-        complete(None, {"points": pts[pts[:, 0] > 0], "voxel_size": VOXEL, "support_planes": [((0, 0, 0), 1)]})
+        complete(None, Context(points=pts[pts[:, 0] > 0], voxel_size=VOXEL, support_planes=[((0, 0, 0), 1)]))
 
 
 def _camera(eye, target, w=128, h=96, f=100.0):
@@ -205,10 +206,10 @@ def test_completion_respects_observed_free_space():
     below = _camera(np.array([0, 0, -0.4]), [0, 0, 0])
     cams = [below]
     depths = [_depth(dome, below)]
-    bare = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "sphere"})
+    bare = complete(None, Context(points=pts, voxel_size=VOXEL, method="sphere"))
     assert bare.mesh.bounds[0, 2] < -0.04
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "sphere",
-                          "cameras": cams, "depths": depths})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, method="sphere",
+                                 cameras=cams, depths=depths))
     # Below the free-space margin (2 voxels) almost nothing of the fitted ball may remain.
     def below_margin(m):
         return to_manifold(m).trim_by_plane((0, 0, -1), 2 * VOXEL).volume()
@@ -231,8 +232,8 @@ def test_plugin_output_is_aligned_and_post_processed():
         m.apply_translation([5, 5, 5])
         return m
 
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": model, "label": "ball",
-                          "support_planes": TABLE})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, plugin=model, label="ball",
+                                 support_planes=TABLE))
     assert calls == [(pts.shape, "ball")]
     assert res.method == "plugin", res.reason
     assert chamfer(res.mesh, gt) < 0.003
@@ -240,7 +241,7 @@ def test_plugin_output_is_aligned_and_post_processed():
     def broken(points, images, label):
         raise ValueError("no GPU")
 
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": broken, "support_planes": TABLE})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, plugin=broken, support_planes=TABLE))
     assert res.method == "sphere" and "no GPU" in res.candidates["plugin"]["why"]
 
 
@@ -262,11 +263,11 @@ def test_a_sponge_is_not_a_completion():
         return model
 
     assert genus(sponge(0.015)(None, None, None)) == 2
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": sponge(0.015), "support_planes": TABLE})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, plugin=sponge(0.015), support_planes=TABLE))
     assert res.completed and res.method != "plugin"
     assert res.candidates["plugin"]["why"] == "genus 2: tunnels through the solid"
     assert genus(res.mesh) <= 1
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "plugin": sponge(0.002), "support_planes": TABLE})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, plugin=sponge(0.002), support_planes=TABLE))
     assert res.method == "plugin" and genus(res.mesh) == 0
     assert abs(res.mesh.volume / gt.volume - 1) < 0.1
 
@@ -287,8 +288,8 @@ def test_mug_handle_left_out_by_the_cylinder_is_added_back():
             _camera(np.array([0.35, 0.1, 0.3]), [0.01, 0, 0.05], w=160, h=120, f=200.0)]
     depths = [_depth(gt, c) for c in cams]
     pts = np.concatenate([_backproject(c, d) for c, d in zip(cams, depths)])
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE,
-                          "cameras": cams, "depths": depths})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, support_planes=TABLE,
+                                 cameras=cams, depths=depths))
     assert res.completed, res.reason
     handle_pts = pts[pts[:, 0] > 0.045]
     from psimap.completion.meshops import distance_to_surface
@@ -309,7 +310,7 @@ def test_irregular_object_closed_down_to_its_support():
     cut.apply_translation([0, -0.13, 0])
     gt = from_manifold(to_manifold(ring) - to_manifold(cut))
     pts = seen_side(gt, [0.2, -0.3, 1.0], noise=0.0005)
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "support_planes": TABLE})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, support_planes=TABLE))
     assert res.completed and res.method in ("support", "mirror"), res.reason
     assert res.mesh.bounds[0, 2] >= -1e-6
     assert abs(res.mesh.volume - gt.volume) / gt.volume < 0.25
@@ -328,8 +329,8 @@ def test_open_neighbour_scan_is_an_obstacle():
     pts = seen_side(gt, [-1, -0.3, 0.3])
     seen_b = b.submesh([np.flatnonzero(b.face_normals @ np.array([-0.5, -1.0, 0.6]) > 0)], append=True)
     assert not seen_b.is_watertight
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "neighbours": [seen_b]})
-    bare = complete(None, {"points": pts, "voxel_size": VOXEL})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, neighbours=[seen_b]))
+    bare = complete(None, Context(points=pts, voxel_size=VOXEL))
     assert res.completed and bare.completed
     assert volume_of_intersection(bare.mesh, b) > 0.05 * b.volume
     # An open scan only pins down its own surface (its solid band): none of the neighbour's seen
@@ -391,7 +392,7 @@ def test_poisson_closing_bridges_a_hole():
     ball = trimesh.creation.icosphere(4, radius=0.05)
     pts = sample_surface(ball, 0.003)
     pts = pts[pts[:, 2] < 0.035]                       # a cap missing on top
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "method": "closing"})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, method="closing"))
     assert res.method == "closing" and is_solid(res.mesh)
     assert chamfer(res.mesh, ball) < 0.003
 
@@ -405,8 +406,8 @@ def test_open_background_scan_gives_support_and_wall_planes():
     gt.apply_translation([0, 0.06, 0.06])               # stands on the floor, touches the wall
     pts = seen_side(gt, [0.2, -1, 0.8], noise=0.0003)
     pts = pts[pts[:, 2] > 0.03]                          # lower front hidden by something
-    res = complete(None, {"points": pts, "voxel_size": VOXEL, "background": background,
-                          "label": "can", "instance_id": 3})
+    res = complete(None, Context(points=pts, voxel_size=VOXEL, background=background,
+                                 label="can"))
     assert res.completed and res.method == "cylinder", res.reason
     assert abs(res.mesh.bounds[0, 2]) < 1e-3              # extended down to the floor
     assert res.mesh.bounds[1, 1] <= 0.1 + 1e-6            # not through the wall
@@ -422,9 +423,9 @@ def test_capped_mesh_counts_only_camera_confirmed_surface():
     assert capped.is_watertight
     cam = _camera(np.array([0.05, -0.4, 0.15]), [0, 0, 0.05], w=160, h=120, f=200.0)
     depth = _depth(gt, cam)
-    alone = complete(capped, {"voxel_size": VOXEL})
+    alone = complete(capped, Context(voxel_size=VOXEL))
     assert alone.method == "none" and "fully observed" in alone.reason
-    res = complete(capped, {"voxel_size": VOXEL, "cameras": [cam], "depths": [depth]})
+    res = complete(capped, Context(voxel_size=VOXEL, cameras=[cam], depths=[depth]))
     assert res.completed and "unseen by any camera ignored" in res.reason, res.reason
     assert res.coverage < min(alone.coverage - 0.1, 0.9)
     assert chamfer(res.mesh, gt) < 0.003

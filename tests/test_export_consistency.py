@@ -11,6 +11,7 @@ import trimesh
 
 from psimap.exporters.consistency import floor_from_background, make_consistent
 from psimap.exporters.objects import SceneObject, view_texel
+from psimap.exporters.roles import Reason, Role
 from psimap.exporters.solidify import disc_points, solid_pitch, solidify
 
 
@@ -117,12 +118,12 @@ def test_overlap_is_cut_from_the_smaller_solid():
     bottle = _obj(_box([0.06, 0.06, 0.2], [0.1, 0, 0.75 - 0.03 + 0.1]), 2, "bottle")
     v_table = table.mesh.volume
     make_consistent([bottle, table], floor_z=0.0)
-    assert not bottle.skipped and not table.skipped
+    assert bottle.role is table.role is Role.DYNAMIC
     assert table.mesh.volume == pytest.approx(v_table)           # the big one keeps the shared part
     assert bottle.mesh.is_watertight
     assert bottle.mesh.bounds[0, 2] == pytest.approx(0.75, abs=1e-6)   # now stands on the top
     assert bottle.mesh.volume == pytest.approx(0.06 * 0.06 * 0.17, rel=1e-4)
-    assert any("overlap with table_1" in s for s in bottle.repair_steps)
+    assert any("overlap with table_1" in s for s in bottle.measured.repair_steps)
 
 
 def test_carved_solid_yields_to_an_observed_one():
@@ -135,11 +136,11 @@ def test_carved_solid_yields_to_an_observed_one():
     box.solid_kind = "enclosed"
     v_box = box.mesh.volume
     make_consistent([box, table], floor_z=0.0)
-    assert not box.skipped and not table.skipped
+    assert box.role is table.role is Role.DYNAMIC
     assert box.mesh.volume == pytest.approx(v_box)
     assert table.mesh.volume == pytest.approx(1.0 * 0.6 * 0.05, rel=1e-4)     # the bump is gone
     assert table.mesh.is_watertight and table.mesh.bounds[1, 2] == pytest.approx(0.75, abs=1e-6)
-    assert any("overlap with box_2" in s for s in table.repair_steps)
+    assert any("overlap with box_2" in s for s in table.measured.repair_steps)
 
 
 def test_floor_cut_swallowed_and_room_sized_objects():
@@ -147,11 +148,11 @@ def test_floor_cut_swallowed_and_room_sized_objects():
     inside = _obj(_box([0.05, 0.05, 0.05], [0.0, 0.0, 0.1]), 2)    # inside `below`
     room = _obj(_box([4.0, 3.0, 0.5], [0, 0, 0.25]), 3, "table")
     make_consistent([below, inside, room], floor_z=0.0)
-    assert room.skipped.startswith("spans 4.0 m")
+    assert room.reason is Reason.ROOM_SIZED and room.why.startswith("spans 4.0 m")
     assert below.mesh.bounds[0, 2] == pytest.approx(0.0, abs=1e-6)
     assert below.mesh.volume == pytest.approx(0.2 * 0.2 * 0.15, rel=1e-4)
-    assert "cut at the floor (50 mm below it)" in below.repair_steps
-    assert inside.skipped.startswith("inside box_1")
+    assert "cut at the floor (50 mm below it)" in below.measured.repair_steps
+    assert inside.reason is Reason.SWALLOWED and inside.why.startswith("inside box_1")
 
 
 def test_floor_from_background_picks_the_largest_up_facing_plane():
@@ -330,7 +331,7 @@ def test_small_solid_is_cut_by_the_bigger_objects_collider():
     inside = _obj(trimesh.creation.icosphere(2, radius=0.03).apply_translation([0, 0, 0.09]), 3, "ball")
     cut_by_colliders(ball, [big])
     cut_by_colliders(inside, [big])
-    assert not ball.skipped and ball.mesh.is_watertight
+    assert ball.role is Role.DYNAMIC and ball.mesh.is_watertight
     assert ball.mesh.bounds[0, 2] == pytest.approx(0.15, abs=1e-4)      # on the hull's top, not in it
-    assert any("cut by the collider of cradle_1" in s for s in ball.repair_steps)
-    assert inside.skipped.startswith("inside the collider of cradle_1")  # wholly in the cradle's hull
+    assert any("cut by the collider of cradle_1" in s for s in ball.measured.repair_steps)
+    assert inside.role is Role.SKIPPED and inside.why.startswith("inside the collider of cradle_1")  # wholly in the cradle's hull

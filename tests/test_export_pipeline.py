@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from psimap import PsimapError
-from psimap.camera import look_at
+from psimap.exporters.roles import Reason, Role
 
 
 def _objects():
@@ -38,7 +38,7 @@ def _files(root):
 def test_all_formats_deterministic_and_degenerate_skipped(objects, tmp_path):
     from psimap.exporters.pipeline import export_scene
 
-    assert objects[2].skipped and "flat" in objects[2].skipped
+    assert objects[2].role is Role.SKIPPED and objects[2].reason is Reason.REPAIR and "flat" in objects[2].why
     r1 = export_scene(objects, tmp_path / "a", "all")
     r2 = export_scene(_objects(), tmp_path / "b", "all")
     f1, f2 = _files(tmp_path / "a"), _files(tmp_path / "b")
@@ -123,23 +123,13 @@ def test_bad_format_and_inputs(objects, tmp_path):
 # ---------------------------------------------------------------- checkpoint path
 
 @pytest.fixture(scope="module")
-def ckpt(tmp_path_factory):
+def ckpt(ring_checkpoint):
     from psimap.data.frames import ClassInfo
-    from psimap.scene import scene_from_meshes
 
     floor = trimesh.creation.box(extents=[1.2, 1.2, 0.02]).apply_translation([0, 0, -0.01])
     box = trimesh.creation.box(extents=[0.2, 0.14, 0.12]).apply_translation([0.15, 0.05, 0.06])
-    w, h, n = 96, 72, 8
-    K = np.array([[80.0, 0, w / 2], [0, 80.0, h / 2], [0, 0, 1]])
-    c2ws = [look_at(np.array([0.7 * np.cos(a), 0.7 * np.sin(a), 0.55]), [0.1, 0.05, 0.04])
-            for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    cams = {"K": np.stack([K] * n), "c2w": np.stack(c2ws), "width": w, "height": h,
-            "names": [f"c{i}" for i in range(n)]}
-    scene = scene_from_meshes([floor, box], [0, 7], [1, 2], [ClassInfo(1, "floor", False), ClassInfo(2, "box", True)],
-                              cams, colors=[(0.5, 0.5, 0.5), (0.9, 0.1, 0.1)])
-    path = tmp_path_factory.mktemp("ckpt") / "scene.ckpt"
-    scene.save(path)
-    return path
+    return ring_checkpoint([floor, box], [0, 7], [1, 2], [ClassInfo(1, "floor", False), ClassInfo(2, "box", True)],
+                           colors=[(0.5, 0.5, 0.5), (0.9, 0.1, 0.1)], target=[0.1, 0.05, 0.04])
 
 
 def test_python_api_objects_in_world_frame(ckpt):

@@ -173,3 +173,25 @@ def test_unstable_object_is_pinned_static_and_the_check_passes(tmp_path):
     assert e["box_2"]["static"] and e["box_2"]["static_reason"] == c["pinned"]["box_2"]
     assert _bodies(tmp_path / "pin" / "scene.xml")["box_2"].find("freejoint") is None
     assert c["bodies"] == 0 and sorted(c["static_bodies"]) == ["box_2", "table_1"]
+
+
+def test_one_role_maps_onto_the_report_keys():
+    """report.json keeps its contract: "static" for every static role, "static_reason" for all but
+    the environment (which needs none), "skipped" for a skipped object."""
+    from psimap.exporters.objects import SceneObject
+    from psimap.exporters.report import object_entry
+    from psimap.exporters.roles import Reason, Role
+
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    o = SceneObject(3, "mug", box)
+    keys = ("static", "static_reason", "skipped")
+    assert o.role is Role.DYNAMIC and [object_entry(o, {})[k] for k in keys] == [False, None, None]
+    o.make_static(Reason.UNSTABLE, "unstable in the settle check (moved 4.0 cm in 2 s)")
+    assert [object_entry(o, {})[k] for k in keys] == [True, "unstable in the settle check (moved 4.0 cm in 2 s)",
+                                                      None]
+    o.make_static(Reason.ENVIRONMENT, "static environment")
+    assert [object_entry(o, {})[k] for k in keys] == [True, None, None]
+    o.skip(Reason.REPAIR, "repair: flat")
+    assert o.role is Role.SKIPPED and [object_entry(o, {})[k] for k in keys] == [False, None, "repair: flat"]
+    o.make_dynamic()
+    assert (o.role, o.reason, o.why) == (Role.DYNAMIC, None, "")
