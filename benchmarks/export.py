@@ -332,7 +332,7 @@ def trained_table(tmp: Path):
                   "Export: trained checkpoint (psimap generate + psimap train, seed 0) through the MuJoCo check",
                   markdown_table(header, rows) + "\n\n" +
                   "Initial penetration is after the nudges the check applies and reports; static objects "
-                   "(furniture classes, or fewer surfels than exporters.pipeline.MIN_RIGID_SURFELS) are supports, "
+                   "(furniture classes, or less of their surface seen than exporters.pipeline.MIN_COVERAGE) are supports, "
                   f"not movers. Load average {load:.1f} on 2 shared cores: times are noisy.",
                   headlines=[("trained demo checkpoint, completion none / auto: check; total wall",
                               " / ".join("passed" if r[3] else "FAILED" for r in rows) + "; "

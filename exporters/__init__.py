@@ -28,12 +28,27 @@ def cli_export(opts) -> int:
     kw["static_classes"] = parse_static_classes(getattr(opts, "static_classes", ""),
                                                 getattr(opts, "dynamic_all", False))
     if getattr(opts, "dynamic_all", False):
-        kw["min_rigid_surfels"] = 0
+        kw["min_coverage"] = 0.0
     kw["pin_unstable"] = not (getattr(opts, "no_pin_unstable", False) or getattr(opts, "dynamic_all", False))
     scene = load_scene(opts.ckpt)
     report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
                           check=not opts.no_check, progress=sys.stderr.isatty(),
-                          overwrite=getattr(opts, "overwrite", False), **kw)
+                          overwrite=getattr(opts, "overwrite", False), up=getattr(opts, "up", "auto"),
+                          min_dynamic=getattr(opts, "min_dynamic", 0.5), **kw)
+    out = report["outcome"]
+    # the line a user reads first: did the things come out as things that move?
+    print(("" if out["passed"] else "FAILED: ") + out["summary"]
+          + ("" if out["passed"] else f" (fewer than {out['min_dynamic']:.0%} dynamic; --static-classes "
+                                      "names what you want static, --min-dynamic 0 accepts it)"))
+    g = report.get("gravity")
+    if g and g["source"] != "given" and g["rotation"] != [[1, 0, 0], [0, 1, 0], [0, 0, 1]]:
+        print(f"gravity: up was {[round(v, 3) for v in g['input_up']]} in the capture; exported Z-up "
+              f"(rotation in report.json)")
+    env = report.get("environment")
+    if env:
+        print(f"static world: floor at {env['floor_z']:.3f} m" + ("" if env["floor_observed"] else " (not seen: a "
+              "safety plane)") + ", colliders " + ", ".join(f"{n} {r}" for r, n in sorted(env["colliders"].items()))
+              + f"; 95 % of its surface within {env['error_m'] * 100:.1f} cm of them")
     n, skipped = len(report["objects"]), len(report["skipped"])
     print(f"exported {n} object(s) to {opts.out} ({opts.format}); skipped {skipped}")
     for o in report["objects"]:
@@ -53,4 +68,4 @@ def cli_export(opts) -> int:
             print(f"  {name} exported static: {reason}")
         if not chk["passed"]:
             return 2
-    return 0
+    return 0 if out["passed"] else 2

@@ -184,13 +184,13 @@ def clip_convex(part, obstacles, clearance: float = 5e-4, max_penetration: float
         if depth <= max_penetration:
             continue
         level = float((np.asarray(ob.vertices, np.float64) @ axis).max()) + clearance
-        part = _clip_halfspace(part, axis, level)
+        part = clip_halfspace(part, axis, level)
         if part is None or part.volume <= 0:
             return None
     return part
 
 
-def _clip_halfspace(part, normal: np.ndarray, level: float):
+def clip_halfspace(part, normal: np.ndarray, level: float):
     """Convex `part` ∩ {x : normal·x >= level} as a convex hull (None when no volume is left): the
     kept vertices plus where the part's edges cross the plane."""
     import trimesh

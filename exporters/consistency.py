@@ -129,26 +129,44 @@ def cut_by_colliders(obj, finished) -> None:
     whose boxes it overlaps: the simulation sees convex hulls, and a hull spans the hollows of its
     mesh (a cabinet's hull covers the dent a box on it left), so a solid that clears the other's
     mesh can still start centimetres inside its collider."""
-    import manifold3d
-
     if obj.role is Role.SKIPPED:
         return
     for other in finished:
         if (other.role is Role.SKIPPED or other.collision is None
                 or not _boxes_overlap(other.mesh.bounds, obj.mesh.bounds, pad=0.01)):
             continue
-        hulls = [to_manifold(p) for p in other.collision.parts if len(p.faces) >= 4]
-        if not hulls:
-            continue
-        union = manifold3d.Manifold.batch_boolean(hulls, manifold3d.OpType.Add) if len(hulls) > 1 else hulls[0]
-        a = to_manifold(obj.mesh)
-        shared = float((a ^ union).volume())
-        if shared < MIN_OVERLAP:
-            continue
-        _apply_cut(obj, _to_trimesh(a - union), MIN_KEEP, f"cut by the collider of {other.name} "
-                   f"({shared * 1e6:.1f} cm3)", f"inside the collider of {other.name}")
+        _cut_by_parts(obj, other.collision.parts, f"the collider of {other.name}")
         if obj.role is Role.SKIPPED:
             return
+
+
+def cut_by_environment(obj, colliders) -> None:
+    """Cut the prepared solid `obj` by the static world's colliders (exporters.environment) it
+    overlaps: a thing's underside and back are never seen, and a solid carved from the views' free
+    space reaches into the unlabelled ramp or the wall it stands against; the world keeps its volume."""
+    if obj.role is Role.SKIPPED:
+        return
+    near = [c for c in colliders if _boxes_overlap(c.mesh.bounds, obj.mesh.bounds, pad=0.005)]
+    for c in near:
+        _cut_by_parts(obj, [c.mesh], f"the static world ({c.name})")
+        if obj.role is Role.SKIPPED:
+            return
+
+
+def _cut_by_parts(obj, parts, what: str) -> None:
+    """obj's solid minus the union of convex `parts` (when they share more than MIN_OVERLAP), the
+    cut recorded in its repair steps; skipped when less than MIN_KEEP of it is left."""
+    import manifold3d
+
+    hulls = [to_manifold(p) for p in parts if len(p.faces) >= 4]
+    if not hulls:
+        return
+    union = manifold3d.Manifold.batch_boolean(hulls, manifold3d.OpType.Add) if len(hulls) > 1 else hulls[0]
+    a = to_manifold(obj.mesh)
+    shared = float((a ^ union).volume())
+    if shared < MIN_OVERLAP:
+        return
+    _apply_cut(obj, _to_trimesh(a - union), MIN_KEEP, f"cut by {what} ({shared * 1e6:.1f} cm3)", f"inside {what}")
 
 
 def neighbour_collider_parts(obj, finished, pad: float = 0.05) -> list:

@@ -99,6 +99,36 @@ def _meshlab_simplify(mesh, faces: int):
     return out
 
 
+# A visual mesh needs triangles no smaller than this many error budgets across, nor smaller than
+# this fraction of its bounding-box diagonal: finer ones draw nothing a viewer or a camera sees.
+EDGE_BUDGETS = 4.0
+EDGE_DIAGONAL = 1.0 / 60.0
+MIN_VISUAL_FACES = 200
+
+
+def visual_face_budget(mesh, budget: float, source_faces: int = 0) -> int:
+    """Most faces the visual mesh of `mesh` (trimesh) needs at error budget `budget` (m): its area in
+    triangles of edge max(EDGE_BUDGETS x budget, EDGE_DIAGONAL x diagonal), at least
+    MIN_VISUAL_FACES, and never more than the mesh it was made from had (`source_faces`, 0 = no
+    limit): closing and decimation must not grow a small object's mesh."""
+    diag = float(np.linalg.norm(mesh.extents))
+    edge = max(EDGE_BUDGETS * float(budget), EDGE_DIAGONAL * diag, 1e-6)
+    cap = max(MIN_VISUAL_FACES, int(np.ceil(float(mesh.area) / (0.433 * edge * edge))))
+    return min(cap, max(MIN_VISUAL_FACES, int(source_faces))) if source_faces > 0 else cap
+
+
+def decimate_to_count(mesh, faces: int, fallback: DecimationResult, *, samples: int = DEFAULT_SAMPLES,
+                      seed: int = 0) -> DecimationResult:
+    """`mesh` simplified to about `faces` faces whatever the error (measured and reported); a
+    watertight input must stay watertight, else `fallback` comes back."""
+    out = simplify_to_count(mesh, faces)
+    if mesh.is_watertight and not out.is_watertight:
+        return fallback
+    haus, mean = surface_distance(mesh, out, samples=samples, seed=seed)
+    return DecimationResult(out, len(mesh.faces), len(out.faces), haus, mean, fallback.budget,
+                            fallback.curve + [(len(out.faces), haus, mean)])
+
+
 def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32,
                        samples: int = DEFAULT_SAMPLES, seed: int = 0,
                        max_iters: int = 7) -> DecimationResult:

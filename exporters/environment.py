@@ -57,7 +57,7 @@ MAX_CLUTTER_PARTS = 64
 @dataclass
 class StaticCollider:
     """One convex collider of the static world. mesh: trimesh.Trimesh, convex, world frame, metres.
-    role: "support" | "ceiling" | "wall" | "clutter"; height: top of a support (m), else None."""
+    role: "support" | "ceiling" | "wall" | "slope" | "clutter"; height: top of a support (m), else None."""
 
     name: str
     role: str
@@ -84,6 +84,18 @@ class Support:
                     or MplPath(self.polygon[::-1]).contains_point(np.asarray(xy, np.float64), radius=2 * margin))
 
 
+def support_under(supports, xy, z_bottom: float, *, max_gap: float = 0.05, margin: float = 0.03):
+    """The highest of `supports` whose footprint (grown by `margin`) holds the plan-view point xy and
+    whose top lies within `max_gap` of z_bottom (below, or above it: a fused bottom sinks into what
+    it stands on), or None."""
+    best = None
+    for s in supports:
+        if abs(s.height - z_bottom) <= max_gap and s.contains(xy, margin):
+            if best is None or s.height > best.height:
+                best = s
+    return best
+
+
 @dataclass
 class StaticEnvironment:
     """The static world of an export: its colliders, the floor, the supports, and how well the
@@ -100,15 +112,8 @@ class StaticEnvironment:
     budget_m: float = 0.0
 
     def support_under(self, xy, z_bottom: float, *, max_gap: float = 0.05, margin: float = 0.03):
-        """The highest support whose footprint (grown by `margin`) holds xy and whose top lies at
-        most `max_gap` below z_bottom (and not more than `max_gap` above it: a fused bottom sinks
-        into what it stands on), or None."""
-        best = None
-        for s in self.supports:
-            if abs(s.height - z_bottom) <= max_gap and s.contains(xy, margin):
-                if best is None or s.height > best.height:
-                    best = s
-        return best
+        """`support_under(self.supports, ...)`."""
+        return support_under(self.supports, xy, z_bottom, max_gap=max_gap, margin=margin)
 
     def summary(self) -> dict:
         roles = {}
@@ -259,10 +264,15 @@ def _levels(values: np.ndarray, weights: np.ndarray, tol: float, min_weight: flo
 
 
 def _direction_levels(dirs: np.ndarray, weights: np.ndarray, degrees: float, min_weight: float) -> list[np.ndarray]:
-    """Greedy peaks of weighted plan-view directions dirs [n, 2] (no seam at +-180 degrees): index
+    """Greedy peaks of weighted directions dirs [n, 2] (plan view) or [n, 3] (no seams): index
     sets within `degrees` of each peak direction, heaviest first, while a peak holds `min_weight`."""
     d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True).clip(1e-12)
-    probes = np.stack([np.cos(a := np.radians(np.arange(0.0, 360.0, 2.5))), np.sin(a)], 1)
+    if d.shape[1] == 2:
+        probes = np.stack([np.cos(a := np.radians(np.arange(0.0, 360.0, 2.5))), np.sin(a)], 1)
+    else:                   # a Fibonacci sphere: probes ~4 degrees apart
+        k = np.arange(2500) + 0.5
+        z, phi = 1 - 2 * k / 2500, np.pi * (1 + 5 ** 0.5) * k
+        probes = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
     cos_tol = np.cos(np.radians(degrees))
     left = np.ones(len(d), bool)
     out = []
@@ -319,46 +329,56 @@ def find_supports(triangles, normals, areas, *, tol: float, cell: float, min_are
 
 def find_walls(triangles, normals, areas, *, tol: float, cell: float, min_area: float = MIN_WALL_AREA,
                skip=None):
-    """(walls, face mask): [(normal [3], offset, polygon in the wall's (u, z) [k, 2], u axis [3])]
-    for the vertical surfaces, grouped by direction (within PLANE_DEGREES) and offset (within tol)."""
+    """(walls, face mask) of the vertical surfaces: `find_planes` of the faces within PLANE_DEGREES
+    of vertical."""
+    sel = np.abs(normals[:, 2]) <= np.sin(np.radians(PLANE_DEGREES))
+    return find_planes(triangles, normals, areas, tol=tol, cell=cell, min_area=min_area,
+                       select=sel if skip is None else sel & ~skip, vertical=True)
+
+
+def find_planes(triangles, normals, areas, *, tol: float, cell: float, min_area: float = MIN_WALL_AREA,
+                select=None, vertical: bool = False):
+    """(planes, face mask): [(normal [3], offset, polygon [k, 2] in the plane's (u, v), u [3], v [3])]
+    for the faces `select`, grouped by direction (within PLANE_DEGREES) and offset (within tol),
+    split into connected pieces in their plane. vertical: the directions are taken horizontal
+    (walls; v is then +z). Otherwise any direction (a ramp, a slanted lid)."""
     centres = triangles.mean(axis=1)
-    vert = np.abs(normals[:, 2]) <= np.sin(np.radians(PLANE_DEGREES))
-    if skip is not None:
-        vert &= ~skip
-    idx = np.flatnonzero(vert)
-    walls, used = [], np.zeros(len(centres), bool)
+    idx = np.flatnonzero(np.ones(len(centres), bool) if select is None else select)
+    planes, used = [], np.zeros(len(centres), bool)
     if len(idx) == 0:
-        return walls, used
-    for d_level in _direction_levels(normals[idx, :2], areas[idx], PLANE_DEGREES, min_area):
+        return planes, used
+    dirs = normals[idx, :2] if vertical else normals[idx]
+    for d_level in _direction_levels(dirs, areas[idx], PLANE_DEGREES, min_area):
         f = idx[d_level]
         n = np.average(normals[f], axis=0, weights=areas[f])
-        n[2] = 0.0
+        if vertical:
+            n[2] = 0.0
         n /= max(np.linalg.norm(n), 1e-12)
+        u = np.cross([0.0, 0.0, 1.0], n)
+        u = u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-6 else np.array([1.0, 0.0, 0.0])
+        v = np.cross(n, u)
         off = centres[f] @ n
         for o_level in _levels(off, areas[f], tol, min_area):
             g = f[o_level]
             d = float(np.average(off[o_level], weights=areas[g]))
-            u = np.array([-n[1], n[0], 0.0])
-            uz = np.column_stack([centres[g] @ u, centres[g, 2]])
-            comp = _components_2d(uz, cell)
+            comp = _components_2d(np.column_stack([centres[g] @ u, centres[g] @ v]), cell)
             for c in np.unique(comp):
                 h = g[comp == c]
                 if areas[h].sum() < min_area:
                     continue
                 used[h] = True
                 pts, wts = _face_points(triangles[h], areas[h])
-                for poly, _ in split_footprint(np.column_stack([pts @ u, pts[:, 2]]), wts, cell=cell,
+                for poly, _ in split_footprint(np.column_stack([pts @ u, pts @ v]), wts, cell=cell,
                                                min_area=min_area):
-                    walls.append((n.copy(), d, poly, u))
-    return walls, used
+                    planes.append((n.copy(), d, poly, u, v))
+    return planes, used
 
 
-def _wall_slab(n, d, poly, u, thickness):
-    """A wall piece as a convex slab from its observed plane d back to d - thickness along -n."""
+def _plane_slab(n, d, poly, u, v, thickness):
+    """A plane piece as a convex slab from its observed plane d back to d - thickness along -n."""
     import trimesh
 
-    corners = [p[0] * u + np.array([0, 0, p[1]]) for p in poly]
-    front = np.array([c + (d - c @ n) * n for c in corners])
+    front = np.array([p[0] * u + p[1] * v + d * n for p in poly])
     return trimesh.convex.convex_hull(np.vstack([front, front - thickness * n]))
 
 
@@ -389,7 +409,12 @@ def clutter_colliders(mesh, faces: np.ndarray, *, budget: float, thickness: floa
     out = []
 
     def add(points, normal, depth):
-        hull = trimesh.convex.convex_hull(np.vstack([points, points - thickness * normal]))
+        # an open patch (a surface seen from one side) is given depth behind it; a piece that is
+        # already thick (a ramp seen on top and sides) is its own hull: depth added there would be
+        # error, and the budget would tile it into steps
+        along = points @ normal
+        extra = max(0.0, thickness - float(along.max() - along.min()))
+        hull = trimesh.convex.convex_hull(np.vstack([points, points - extra * normal]) if extra > 0 else points)
         probe = points if len(points) <= 4000 else points[np.linspace(0, len(points) - 1, 4000).astype(int)]
         err = _distance_to_convex(hull, probe)
         if float(np.percentile(err, 95)) <= budget or depth >= MAX_SPLIT_DEPTH or len(points) < 16:
@@ -442,10 +467,12 @@ def _scatter(mask_of_ok: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 # ---- the environment -------------------------------------------------------------------------------
 def static_environment(background, *, voxel: float = 0.01, budget: float | None = None,
-                       thickness: float = THICKNESS, seed: int = 0) -> StaticEnvironment:
+                       thickness: float = THICKNESS, exclude_points=None, seed: int = 0) -> StaticEnvironment:
     """Colliders of the static world from the fused background surface (trimesh, world Z-up, face
     normals towards the observed side). voxel: the fusion's voxel (m); budget: collider error budget
-    (m), default 2 voxels but not under 1.5 cm."""
+    (m), default 2 voxels but not under 1.5 cm. exclude_points [n, 3]: where the objects are (their
+    surfel centres): background surface within the budget of them is a mask's bleeding onto the
+    background, never clutter (a clutter hull there would start inside the object)."""
     budget = max(0.015, 2.0 * voxel) if budget is None else float(budget)
     if background is None or len(getattr(background, "faces", [])) == 0:
         return StaticEnvironment(None, False, budget_m=budget)
@@ -467,11 +494,17 @@ def static_environment(background, *, voxel: float = 0.01, budget: float | None 
     # observed below it; a desk seen without the floor has walls or legs going on down
     floor_z, observed = None, False
     if supports:
-        total = sum(s.area for s in supports)
-        for s in sorted((s for s in supports if s.area >= FLOOR_SHARE * total), key=lambda s: s.height):
-            below = float(A[ok & (C[:, 2] < s.height - FLOOR_CLEARANCE)].sum())
+        # by level, not by piece: a floor is seen in pieces around the furniture standing on it
+        levels = {}
+        for s in supports:
+            key = min(levels, key=lambda h: abs(h - s.height), default=None)
+            key = key if key is not None and abs(key - s.height) <= tol else s.height
+            levels[key] = levels.get(key, 0.0) + s.area
+        total = sum(levels.values())
+        for h in sorted(h for h, a in levels.items() if a >= FLOOR_SHARE * total):
+            below = float(A[ok & (C[:, 2] < h - FLOOR_CLEARANCE)].sum())
             if below <= MAX_AREA_BELOW_FLOOR * float(A[ok].sum()):
-                floor_z, observed = float(s.height), True
+                floor_z, observed = float(h), True
             break
     if floor_z is None:
         # no floor seen (a close-up of a table): a safety plane under everything, not a surface
@@ -486,18 +519,77 @@ def static_environment(background, *, voxel: float = 0.01, budget: float | None 
     for k, c in enumerate(sorted(ceilings, key=lambda s: (s.height, -s.area))):
         colliders.append(StaticCollider(f"ceiling_{k}", "ceiling", _prism(c.polygon, c.height, c.height + thickness),
                                         None, c.area))
-    for k, (n, d, poly, u) in enumerate(walls):
-        colliders.append(StaticCollider(f"wall_{k}", "wall", _wall_slab(n, d, poly, u, thickness), None,
+    for k, (n, d, poly, u, v) in enumerate(walls):
+        colliders.append(StaticCollider(f"wall_{k}", "wall", _plane_slab(n, d, poly, u, v, thickness), None,
                                         _polygon_area(poly)))
-    rest = np.flatnonzero(ok & ~s_used & ~w_used & (C[:, 2] > floor_z + 0.5 * tol))
-    # a fused surface rounds every corner where two planes meet: what lies within the budget of a
-    # collider already made is explained by it
-    rest = rest[_distance_to_colliders(C[rest], colliders, floor_z if observed else None) > budget]
+
+    def unexplained(faces):
+        # a fused surface rounds every corner where two planes meet, and a noisy floor's faces tilt
+        # by tens of degrees: what lies within the budget of a collider already made is explained
+        return faces[_distance_to_colliders(C[faces], colliders, floor_z if observed else None) > budget]
+
+    rest = unexplained(np.flatnonzero(ok & ~s_used & ~w_used & (C[:, 2] > floor_z + 0.5 * tol)))
+    # planes of any other slant (a ramp, a lid) among what is left
+    select = np.zeros(len(C), bool)
+    select[rest] = True
+    slopes, p_used = find_planes(T[ok], N[ok], A[ok], tol=tol, cell=cell, select=select[ok])
+    for k, (n, d, poly, u, v) in enumerate(slopes):
+        colliders.append(StaticCollider(f"slope_{k}", "slope", _plane_slab(n, d, poly, u, v, thickness), None,
+                                        _polygon_area(poly)))
+    rest = unexplained(rest[~_scatter(p_used, ok)[rest]])
+    if exclude_points is not None and len(exclude_points) and len(rest):
+        from scipy.spatial import cKDTree
+
+        near, _ = cKDTree(np.asarray(exclude_points, np.float64)).query(C[rest], distance_upper_bound=budget)
+        rest = rest[~np.isfinite(near)]
     for k, hull in enumerate(clutter_colliders(background, rest, budget=budget, thickness=thickness)):
         colliders.append(StaticCollider(f"clutter_{k}", "clutter", hull, None, float(hull.area)))
     env = StaticEnvironment(floor_z, observed, colliders, supports, budget_m=budget)
     measure_error(env, background, seed=seed)
     return env
+
+
+def furniture_tops(mesh, *, voxel: float = 0.01, min_area: float = MIN_SUPPORT_AREA) -> list:
+    """[Support] of a static furniture object's fused surface (a thing labelled table, shelf,
+    cabinet): its up-facing levels, the same way as the background's."""
+    if mesh is None or len(getattr(mesh, "faces", [])) == 0:
+        return []
+    T = np.asarray(mesh.triangles, np.float64)
+    tol = max(0.01, 1.5 * voxel)
+    cell = max(0.02, 2.0 * voxel, float(np.median(mesh.edges_unique_length)))
+    supports, _ = find_supports(T, np.asarray(mesh.face_normals, np.float64), np.asarray(mesh.area_faces, np.float64),
+                                tol=tol, cell=cell, min_area=min_area)
+    return supports
+
+
+def add_support_slabs(env: StaticEnvironment, supports, owner: str, thickness: float = THICKNESS) -> None:
+    """Add `supports` (of static furniture `owner`) to env: things may rest on them, and each gets a
+    flat slab collider (its furniture's own collider is flattened under it: `flatten_under`)."""
+    for k, s in enumerate(sorted(supports, key=lambda s: (s.height, -s.area))):
+        env.supports.append(s)
+        env.colliders.append(StaticCollider(f"{owner}_top_{k}", "support",
+                                            _prism(s.polygon, s.height - thickness, s.height), s.height, s.area))
+
+
+def flatten_under(parts, supports, *, bump: float = 0.05, margin: float = 0.02) -> list:
+    """Convex collider parts [trimesh] of a static furniture object with every part that bulges
+    less than `bump` above one of its supports (inside the footprint grown by `margin`) cut flat at
+    the support's height: the support's slab is the flat top things rest on, and a fused table top
+    is rounded and wavy by centimetres. Parts that rise well above (a shelf's sides) are kept."""
+    from psimap.exporters.collision import clip_halfspace
+
+    out = []
+    for p in parts:
+        lo, hi = np.asarray(p.bounds)
+        centre = np.asarray(p.vertices, np.float64).mean(axis=0)[:2]
+        for s in supports:
+            if lo[2] < s.height < hi[2] <= s.height + bump and s.contains(centre, margin):
+                p = clip_halfspace(p, np.array([0.0, 0.0, -1.0]), -s.height)
+                if p is None:
+                    break
+        if p is not None:
+            out.append(p)
+    return out
 
 
 def measure_error(env: StaticEnvironment, background, *, samples: int = 20000, seed: int = 0) -> None:

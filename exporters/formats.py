@@ -29,16 +29,19 @@ class ExportScene:
     """The scene as exported, one value for every writer.
 
     objects: SceneObject (exporters.objects) with Role.DYNAMIC or Role.STATIC, world frame, metres,
-    in export order. background: the static environment (floor, walls, unlabelled surfaces) as a
-    SceneObject, or None. floor_z: height of the floor plane that carries contacts. nudges:
-    {object name: dz} metres along +z from the MuJoCo settle check (up out of a penetration, down
-    onto a support); writers place object `o` at its reconstructed pose moved by `offset(o)`.
+    in export order. background: what the static world looks like (floor, walls, unlabelled
+    surfaces) as a visual SceneObject, or None. floor_z: height of the floor plane that carries
+    contacts. nudges: {object name: dz} metres along +z from the MuJoCo settle check (up out of a
+    penetration, down onto a support); writers place object `o` at its reconstructed pose moved by
+    `offset(o)`. environment: the static world's colliders (exporters.environment.StaticEnvironment:
+    supports, walls, ceilings, clutter; every writer that simulates emits all of them), or None.
     """
 
     objects: tuple
     background: object | None
     floor_z: float
     nudges: Mapping[str, float] = field(default_factory=dict)
+    environment: object | None = None
 
     def offset(self, obj):
         """[3] translation (metres) of `obj` from its reconstructed place: its settle nudge."""

@@ -5,7 +5,9 @@ and moments; neither for a static object: furniture, barely seen or pinned thing
 visual mesh geom (group 2, contype/conaffinity 0, density 0: adds no mass and never collides) and
 its collision geoms (group 3): a primitive, or convex mesh parts (MuJoCo collides a mesh geom
 through its convex hull, so each part is one convex piece). The background is static and visual
-only (its convex hull would swallow the room); a floor plane carries contacts. Objects stand where
+only (its convex hull would swallow the room); the static world's colliders (exporters.environment:
+support slabs, walls, ceilings, clutter hulls, `env_<name>` geoms) and a floor plane carry its
+contacts, the same set the USD has. Objects stand where
 the export scene puts them: as reconstructed, moved by the settle check's nudge. Names are
 `<label>_<instance id>`: unique and stable between exports.
 """
@@ -51,6 +53,14 @@ def write_mjcf(scene, out_dir: str | Path, *, timestep: float = 0.002, model_nam
                   directional="true")
     ET.SubElement(world, "geom", name="floor", type="plane", size="0 0 0.05", pos=_f([0, 0, floor_z]),
                   material="floor_material", friction="0.8 0.005 0.0001", group="0")
+    # the static world's colliders: convex slabs and hulls, welded to the world (the background
+    # mesh itself is visual only)
+    for c in (scene.environment.colliders if scene.environment is not None else ()):
+        fname = f"env_{c.name}.stl"
+        write_plain(np.asarray(c.mesh.vertices, np.float64), np.asarray(c.mesh.faces), assets / fname)
+        ET.SubElement(asset, "mesh", name=f"env_{c.name}", file=fname)
+        ET.SubElement(world, "geom", name=f"env_{c.name}", type="mesh", mesh=f"env_{c.name}", group="3",
+                      friction="0.8 0.005 0.0001", rgba="0.5 0.5 0.55 0.35")
 
     def visual_assets(o, origin: np.ndarray) -> dict:
         name = o.name

@@ -33,6 +33,8 @@ class Measurements:
     decimation_error: float = 0.0           # metres (symmetric Hausdorff)
     decimation_mean_error: float = 0.0
     decimation_budget: float = 0.0
+    face_budget: int = 0                    # most faces the visual mesh may have (decimate.visual_face_budget)
+    coverage: float = -1.0                  # share of its surface the views saw (observed_coverage; -1: unknown)
     watertight: bool = False
     completed: bool = False
     completion_method: str = "none"
@@ -198,7 +200,7 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     UV + texture. Skipped objects come back unchanged. obstacles: convex collider parts of
     neighbours that the collider must not enter."""
     from psimap.exporters.collision import collision_geometry, default_tolerance
-    from psimap.exporters.decimate import decimate_to_budget, default_budget
+    from psimap.exporters.decimate import decimate_to_budget, decimate_to_count, default_budget, visual_face_budget
     from psimap.exporters.physics import mass_properties
 
     if obj.role is Role.SKIPPED:
@@ -213,6 +215,11 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
         collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
     t0 = time.perf_counter()
     dec = decimate_to_budget(m, decimation_budget, seed=seed)
+    cap = obj.measured.face_budget = visual_face_budget(m, dec.budget, obj.measured.faces_before)
+    if len(dec.mesh.faces) > cap:
+        # the error budget asked for more faces than an object this size needs (a voxel solid's
+        # staircase, a closing that refined the surface): the face budget wins, its error is kept
+        dec = decimate_to_count(m, cap, dec, seed=seed)
     obj.measured.timings["decimation_s"] = time.perf_counter() - t0
     m = dec.mesh
     obj.measured.faces_after = int(len(m.faces))
@@ -419,14 +426,15 @@ def extract_objects(scene, *, completion: str = "auto", include_skipped: bool = 
     Meshes come from TSDF fusion of the rendered depth masked by the rendered instance id (step 1),
     then go through the asset steps. Skipped objects (Role.SKIPPED) only when include_skipped.
     """
-    objs, _ = extract_scene(scene, completion=completion, progress=progress, **kw)
+    objs, _, _ = extract_scene(scene, completion=completion, progress=progress, **kw)
     return [o for o in objs if include_skipped or o.role is not Role.SKIPPED]
 
 
 def extract_scene(scene, *, completion: str = "auto", progress: bool = False, seed: int = 0,
                   timings: dict | None = None, static_classes=None,
-                  **kw) -> tuple[list[SceneObject], SceneObject | None]:
-    """(objects incl. skipped ones, background or None) of a trained scene. timings: a dict that
+                  **kw) -> tuple[list[SceneObject], SceneObject | None, object | None]:
+    """(objects incl. skipped ones, background or None, static environment or None) of a trained
+    scene (world Z-up: exporters.pipeline.gravity_aligned turns a capture first). timings: a dict that
     receives the seconds of the scene-level steps (instance meshes, consistency, background).
     static_classes: classes exported static (None = physics.STATIC_CLASSES); their colliders may
     use up to STATIC_MAX_HULLS parts.
@@ -448,8 +456,9 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from tqdm import tqdm
 
     from psimap.completion import CompletionContext
-    from psimap.exporters.consistency import (cut_by_colliders, floor_from_background, make_consistent,
+    from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
+    from psimap.exporters.environment import add_support_slabs, flatten_under, furniture_tops, static_environment
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.physics import is_static_class
     from psimap.exporters.solidify import disc_points
@@ -458,10 +467,16 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     t0 = time.perf_counter()
     inst = instance_meshes(scene, progress=progress)
     timings["instance_meshes_s"] = time.perf_counter() - t0
-    floor_z = floor_from_background(inst.background)
     sf = {k: scene.surfels[k].detach().cpu().numpy() for k in ("means", "quats", "scales", "opacities")}
     iid = scene.instance_ids().cpu().numpy()
-    objs, views_of = [], {}
+    t0 = time.perf_counter()
+    # the static world first: what the things stand on decides where their bottoms are
+    env = static_environment(inst.background, voxel=inst.voxel_size, exclude_points=sf["means"][iid > 0], seed=seed)
+    floor_z = env.floor_z if env.floor_observed else None
+    tops = {item.instance_id: furniture_tops(item.mesh, voxel=inst.voxel_size) for item in inst.things
+            if is_static_class(item.label, static_classes) and item.mesh is not None and len(item.mesh.faces)}
+    timings["environment_s"] = time.perf_counter() - t0
+    objs, views_of, surfels_of = [], {}, {}
     for item in tqdm(inst.things, desc="object solids", disable=not progress, leave=False):
         if item.mesh is None or len(item.mesh.faces) == 0:
             objs.append(SceneObject(item.instance_id, item.label, item.mesh, semantic_id=item.semantic_id))
@@ -469,12 +484,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             continue
         views = views_of[item.instance_id] = inst.views_for(item.instance_id)
         members = item.members if item.members is not None else iid == item.instance_id
-        support = item.support_z
-        if floor_z is not None and (support is None and float(item.mesh.bounds[0, 2]) < floor_z + 0.05
-                                    or support is not None and abs(support - floor_z) < 0.03):
-            # it stands on the floor: on the floor plane the scene is exported with (the surfels
-            # under one object and the background's dominant plane differ by a centimetre)
-            support = floor_z
+        support = resting_height(item, env.supports + [s for i, ts in tops.items() if i != item.instance_id
+                                                        for s in ts])
         context = CompletionContext(
             background=inst.background, voxel_size=inst.voxel_size,
             support_planes=[] if support is None else [((0.0, 0.0, 1.0), support)],
@@ -486,23 +497,33 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                                   completion=completion, context=context, support_z=support,
                                   surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size))
         objs[-1].surfel_count = int(np.count_nonzero(members))
+        surfels_of[item.instance_id] = surfel_points
         if item.dropped_surfels:
             objs[-1].measured.repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away "
                                                      "from its main body left out")
     t0 = time.perf_counter()
     make_consistent(objs, floor_z)
     timings["consistency_s"] = time.perf_counter() - t0
+    for o in objs:
+        if o.role is not Role.SKIPPED and o.instance_id in surfels_of:
+            o.measured.coverage = observed_coverage(o.mesh, surfels_of[o.instance_id], tol=1.5 * inst.voxel_size)
     # biggest first: each smaller solid is cut by the colliders already made around it
     finished = []
     order = sorted((o for o in objs if o.role is not Role.SKIPPED),
                    key=lambda o: (-float(o.mesh.volume), o.instance_id))
     for o in tqdm(order, desc="object assets", disable=not progress, leave=False):
         t0 = time.perf_counter()
+        cut_by_environment(o, env.colliders)
         cut_by_colliders(o, finished)
         timings["consistency_s"] += time.perf_counter() - t0
         hulls = {"max_hulls": STATIC_MAX_HULLS} if is_static_class(o.label, static_classes) else {}
+        world = [c.mesh for c in env.colliders if c.mesh.bounds[1][2] > o.mesh.bounds[0][2] - 0.05
+                 and np.all(c.mesh.bounds[0] < o.mesh.bounds[1] + 0.05) and np.all(c.mesh.bounds[1] > o.mesh.bounds[0] - 0.05)]
         finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed,
-                      obstacles=neighbour_collider_parts(o, finished), **{**kw, **hulls})
+                      obstacles=neighbour_collider_parts(o, finished) + world, **{**kw, **hulls})
+        if tops.get(o.instance_id) and o.collision is not None and not o.collision.is_primitive:
+            # static furniture: a flat slab is its top, its fused hulls are cut flat under it
+            o.collision.parts = flatten_under(o.collision.parts, tops[o.instance_id])
         finished.append(o)
     background = inst.background
     # labels too big to be objects stay in the scene as static background (what they covered is
@@ -510,6 +531,12 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     room_sized = [t.mesh for t, o in zip(inst.things, objs) if o.reason is Reason.ROOM_SIZED and t.mesh is not None]
     if room_sized:
         background = trimesh.util.concatenate([m for m in [background, *room_sized] if m is not None])
+        t0 = time.perf_counter()
+        env = static_environment(background, voxel=inst.voxel_size, exclude_points=sf["means"][iid > 0], seed=seed)
+        timings["environment_s"] += time.perf_counter() - t0
+    for o in objs:
+        if o.role is not Role.SKIPPED and tops.get(o.instance_id):
+            add_support_slabs(env, tops[o.instance_id], o.name)
     bg = None
     t0 = time.perf_counter()
     if background is not None and len(background.faces):
@@ -517,7 +544,41 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         if bg.role is Role.SKIPPED:
             bg = None
     timings["background_s"] = time.perf_counter() - t0
-    return objs, bg
+    return objs, bg, env
+
+
+def observed_coverage(mesh, surfel_points: np.ndarray, *, tol: float, samples: int = 3000, seed: int = 0) -> float:
+    """Share of a solid's surface (trimesh) the views saw: area samples within `tol` of an observed
+    surfel disc (surfel_points [n, 3], exporters.solidify.disc_points), its bottom left out (the
+    side an object rests on is never seen; the support decides it). How well an object is known,
+    whatever number of surfels happens to represent it."""
+    from scipy.spatial import cKDTree
+
+    from psimap.transforms import sample_surface
+
+    if len(surfel_points) == 0 or mesh is None or len(mesh.faces) == 0:
+        return 0.0
+    pts = sample_surface(mesh, samples, seed)
+    lo = float(np.asarray(mesh.bounds)[0, 2])
+    pts = pts[pts[:, 2] > lo + tol]
+    if len(pts) == 0:
+        return 0.0
+    d, _ = cKDTree(np.asarray(surfel_points, np.float64)).query(pts, distance_upper_bound=tol)
+    return float(np.isfinite(d).mean())
+
+
+def resting_height(item, supports, max_gap: float = 0.05) -> float | None:
+    """Height of the support a fused thing (instance_meshes item) rests on: the highest support
+    (exporters.environment) under its plan-view centre within `max_gap` of its bottom (the surfels'
+    support level when it has one, else its lowest point); else the surfels' level as it is. A
+    fused bottom sinks into or hovers over what it stands on by a centimetre; snapped to the
+    support's own plane, object and collider meet flat."""
+    from psimap.exporters.environment import support_under
+
+    lo, hi = np.asarray(item.mesh.bounds, np.float64)
+    bottom = item.support_z if item.support_z is not None else float(lo[2])
+    s = support_under(supports, 0.5 * (lo[:2] + hi[:2]), bottom, max_gap=max_gap)
+    return s.height if s is not None else item.support_z
 
 
 def object_from_scan(path, label: str, instance_id: int, *, place_on_floor: bool = True,

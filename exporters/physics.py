@@ -41,6 +41,12 @@ DENSITY_KG_M3: dict[str, float] = {
     "toilet": 1500.0, "refrigerator": 250.0, "microwave": 350.0, "oven": 350.0,
 }
 
+# Plausible spread of a solid's mass around volume x density (a factor: low = mass / f, high =
+# mass x f): packaging and fill vary, liquids less so, an unknown class most.
+DENSITY_SPREAD: dict[str, float] = {"default": 3.0, "bottle": 1.3, "can": 1.3, "fruit": 1.4, "banana": 1.4,
+                                    "apple": 1.4, "orange": 1.4, "lemon": 1.4, "box": 2.0, "book": 1.3,
+                                    "books": 1.3}
+
 # Coulomb sliding friction coefficient per class (MuJoCo `friction[0]`).
 FRICTION: dict[str, float] = {
     "default": 0.7,
@@ -125,16 +131,22 @@ class Physics:
     principal_inertia: np.ndarray  # [3] eigenvalues (ascending)
     principal_axes: np.ndarray  # [3, 3] columns = principal axes (right-handed)
     volume: float               # m^3
-    density: float              # kg/m^3 used
-    density_key: str            # table key that matched the label
+    density: float              # kg/m^3 used (a shell's: its mass over the volume it encloses)
+    density_key: str            # table key that matched the label ("shell:<key>" for a shell)
     friction: float
+    model: str = "solid"        # "solid" (volume x density) | "shell" (exporters.shell)
+    mass_range: tuple = (0.0, 0.0)   # plausible kg, low and high
+    areal_density: float = 0.0  # kg/m^2 of a shell's wall (0 for a solid)
 
 
 def mass_properties(mesh, label: str, *, densities: dict[str, float] | None = None,
                     frictions: dict[str, float] | None = None,
-                    density: float | None = None) -> Physics:
+                    density: float | None = None, shell: bool = True) -> Physics:
     """Mass, centre of mass and inertia of a watertight mesh (trimesh.Trimesh, metres, world frame).
 
+    Containers and objects with a measured open cavity are thin shells (exporters.shell: a mug is
+    a wall around air), unless `shell` is False or a `density` is given; everything else is a solid
+    of its class's density. Each mass comes with a plausible range (`Physics.mass_range`).
     The mesh must enclose a positive volume (repair first); otherwise PsimapError.
     """
     table = DENSITY_KG_M3 if densities is None else densities
@@ -152,6 +164,17 @@ def mass_properties(mesh, label: str, *, densities: dict[str, float] | None = No
         raise PsimapError(f"mass properties of '{label}': mesh encloses no volume ({volume:.3g} m^3)")
     mass = float(volume * density)
     inertia = inertia_unit * density
+    model, spread = "solid", DENSITY_SPREAD.get(key, DENSITY_SPREAD["default"] if key == "default" else 1.6)
+    mass_range, areal = (mass / spread, mass * spread), 0.0
+    sh = None
+    if shell and key != "explicit":
+        from psimap.exporters.shell import shell_mass
+
+        sh = shell_mass(mesh, label)
+    if sh is not None:
+        mass, com, inertia = float(sh.mass), np.asarray(sh.com, np.float64), np.asarray(sh.inertia, np.float64)
+        model, mass_range, areal, density, key = "shell", sh.mass_range, sh.areal_density, mass / volume, \
+            f"shell:{sh.key}"
     inertia = 0.5 * (inertia + inertia.T)
     evals, evecs = np.linalg.eigh(inertia)
     if not (evals > 0).all():
@@ -163,7 +186,8 @@ def mass_properties(mesh, label: str, *, densities: dict[str, float] | None = No
         evecs[:, 2] *= -1
     return Physics(mass=mass, com=com, inertia=inertia, principal_inertia=evals,
                    principal_axes=evecs, volume=float(volume), density=float(density),
-                   density_key=key, friction=float(friction))
+                   density_key=key, friction=float(friction), model=model,
+                   mass_range=(float(mass_range[0]), float(mass_range[1])), areal_density=float(areal))
 
 
 def _integrate(v: np.ndarray, f: np.ndarray):

@@ -21,26 +21,28 @@ import numpy as np
 from psimap import PsimapError
 from psimap.exporters.roles import Reason, Role
 
-# A thing reconstructed from fewer surfels than this is exported static (with the reason): ~5 discs
-# per side of a box leave its underside, which decides how it rests, a guess. On the trained demo
-# checkpoint (furniture static) the objects with 10 and 26 surfels rocked 2.6 / 2.1 cm in the settle
-# check without completion, the one with 29 moved 5.5 cm after completion grew it, the one with 31
-# stayed within 1.3 mm (benchmarks/RESULTS.md, "trained checkpoint", 14:03). Edit freely.
-MIN_RIGID_SURFELS = 30
+# A thing whose surface the views saw less than this share of (its bottom left out: the support
+# decides it) is exported static, with the reason: its shape, so how it rests, is a guess. Measured
+# per object (objects.observed_coverage), whatever number of surfels represents it: on the demo
+# checkpoint the bottles and boxes held by 10-23 surfels are 86-98 % seen, the furniture 45-56 %.
+MIN_COVERAGE = 0.3
+
+# The export fails (report["outcome"]) when fewer than this share of the things that should move
+# come out dynamic (pinned, skipped, cut away, too little evidence); 0 = never.
+MIN_DYNAMIC = 0.5
 
 # settle checks after pinning the objects that moved: an object resting on a pinned one may have
 # moved only because its support did
 PIN_ROUNDS = 3
 
 
-def floor_height(objects, background=None) -> float:
-    """Floor z: the background's floor plane (exporters.consistency, where objects were cut), unless
-    objects reach more than 1 cm below it; else the lowest dynamic object's bottom."""
-    from psimap.exporters.consistency import floor_from_background
-
+def floor_height(objects, environment=None) -> float:
+    """Floor z: the static environment's floor (its observed floor, where objects were cut; or the
+    safety plane under everything when no floor was seen), unless objects reach more than 1 cm below
+    it; else the lowest object's bottom."""
     lows = [float(o.mesh.bounds[0, 2]) for o in objects]
     z = min(lows) if lows else 0.0
-    zf = floor_from_background(background.mesh) if background is not None else None
+    zf = environment.floor_z if environment is not None else None
     if zf is not None and (not lows or zf <= z + 0.01):
         return min(z, zf) if lows else zf
     return z
@@ -49,8 +51,8 @@ def floor_height(objects, background=None) -> float:
 def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] = "mjcf", *,
                  completion: str = "auto", check: bool = True, background=None,
                  progress: bool = False, seed: int = 0, static_classes=None,
-                 min_rigid_surfels: int = MIN_RIGID_SURFELS, pin_unstable: bool = True, overwrite: bool = False,
-                 **kw) -> dict:
+                 min_coverage: float = MIN_COVERAGE, pin_unstable: bool = True, overwrite: bool = False,
+                 up: str = "auto", min_dynamic: float = MIN_DYNAMIC, **kw) -> dict:
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
@@ -61,8 +63,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     failed settle is reported (report["check"]["passed"]).
     static_classes: class names exported static (collider, no freejoint / rigid body); None = the
     default heavy-furniture list (exporters.physics.STATIC_CLASSES), an empty set = all dynamic.
-    min_rigid_surfels: an object a checkpoint holds fewer surfels of is exported static with the
-    reason in report.json (0 = never).
+    min_coverage: an object whose surface the views saw less of (Measurements.coverage) is exported
+    static with the reason in report.json (0 = never; objects of unknown coverage, -1, never).
     pin_unstable: objects that move or fall in the settle check are exported static (reason in
     report.json, names in report["check"]["pinned"]) and the scene is checked again, up to
     PIN_ROUNDS times. A reconstructed support is never exactly flat: a box 4 cm from a table's
@@ -70,6 +72,11 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     are pinned; penetration, NaN and explosions still fail the check.
     overwrite: write into an `out_dir` psimap did not write (psimap.io_utils rules: an earlier export
     there is replaced; with overwrite, other files are kept and only same-named ones replaced).
+    up: the capture's gravity-up direction ("auto": estimated, psimap.geometry.gravity; "+z", "-y",
+    ... or "x,y,z"): a scene is turned so that it points along +z before anything is extracted, and
+    the rotation is in report["gravity"]. Objects passed as a list are taken as Z-up already.
+    min_dynamic: report["outcome"] fails when fewer than this share of the things the map found
+    (those not static by class) come out dynamic: a scene in which nothing can move is no success.
 
     Roles are decided on copies of the objects (the ones passed in keep theirs). The order:
     objects -> roles -> meshes/ and collision/ (as reconstructed) -> settle check (pins, nudges) ->
@@ -83,6 +90,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     fmts = format_names(format)
     if completion not in Choices():
         raise PsimapError(f"unknown completion {completion!r} (choose from {', '.join(Choices())})")
+    if not 0.0 <= float(min_dynamic) <= 1.0:
+        raise PsimapError(f"--min-dynamic must lie in 0..1, got {min_dynamic}")
     check_output_dir(out_dir, "export", overwrite=overwrite)       # before the work, not after it
     t0 = time.perf_counter()
     scene_steps: dict = {}
@@ -90,23 +99,32 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         all_objs = list(scene_or_objects)
         if any(not isinstance(o, SceneObject) for o in all_objs):
             raise PsimapError("export_scene: expected a Scene or a list of SceneObject")
+        environment = None
+        if background is not None:
+            from psimap.exporters.environment import static_environment
+
+            environment = static_environment(background.mesh, seed=seed)
+        gravity = None
     else:
-        all_objs, background = extract_scene(scene_or_objects, completion=completion, progress=progress,
-                                             seed=seed, timings=scene_steps, static_classes=static_classes,
-                                             **kw)
+        scene_or_objects, gravity = gravity_aligned(scene_or_objects, up)
+        all_objs, background, environment = extract_scene(
+            scene_or_objects, completion=completion, progress=progress, seed=seed, timings=scene_steps,
+            static_classes=static_classes, **kw)
     t_objects = time.perf_counter() - t0
     # the environment passed in the list is no object (it is `background`)
     objs = [replace(o) for o in all_objs if o.role is not Role.SKIPPED and o.reason is not Reason.ENVIRONMENT]
-    assign_roles(objs, static_classes, min_rigid_surfels)
+    assign_roles(objs, static_classes, min_coverage)
     names = [o.name for o in objs]
     if len(set(names)) != len(names):
         raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
-    scene = ExportScene(tuple(objs), background, floor_height(objs, background))
+    scene = ExportScene(tuple(objs), background, floor_height(objs, environment), environment=environment)
     timings = {"objects_s": t_objects, **scene_steps}
     for o in all_objs:      # per asset step, summed over the objects
         for k, v in o.measured.timings.items():
             timings[k] = timings.get(k, 0.0) + v
     report = {"format": sorted(fmts), "floor_z": scene.floor_z, "objects": [], "background": None,
+              "gravity": None if gravity is None else gravity.to_json(),
+              "environment": None if environment is None else environment.summary(),
               "skipped": [{"name": o.name, "instance_id": int(o.instance_id), "class": o.label, "reason": o.why}
                           for o in all_objs if o.role is Role.SKIPPED]}
     with atomic_dir(out_dir, "export", overwrite=overwrite) as tmp:
@@ -119,6 +137,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
             scene = scene.nudged(report["check"]["nudges"])
         # after the check: it may have pinned objects static
         report["objects"] = [object_entry(o, files[o.name]) for o in scene.objects]
+        report["outcome"] = export_outcome(all_objs, scene.objects, min_dynamic)
         if background is not None:
             report["background"] = object_entry(background, files.get(background.name, {}))
         for name in fmts:
@@ -136,6 +155,54 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                                                      indent=2, sort_keys=True) + "\n")
     report["timings"] = timings
     return report
+
+
+def export_outcome(found, exported, min_dynamic: float = MIN_DYNAMIC) -> dict:
+    """What came of the things the map found (`found`: every extracted object, skipped ones too;
+    `exported`: the export's objects after the settle check): how many are dynamic, and why the
+    others are not. Things static by class (furniture, the user's --static-classes) are not asked
+    to move. passed: at least `min_dynamic` of the others are dynamic (True when there are none)."""
+    by_name = {o.name: o for o in exported}
+    counts = {"things": 0, "dynamic": 0, "static_class": 0, "pinned": 0, "little_evidence": 0, "skipped": 0}
+    why = {}
+    for o in found:
+        if o.reason is Reason.ENVIRONMENT:
+            continue
+        counts["things"] += 1
+        o = by_name.get(o.name, o)
+        if o.role is Role.DYNAMIC:
+            counts["dynamic"] += 1
+        elif o.reason is Reason.STATIC_CLASS:
+            counts["static_class"] += 1
+        elif o.reason is Reason.UNSTABLE:
+            counts["pinned"] += 1
+            why[o.name] = o.why
+        elif o.reason is Reason.LITTLE_EVIDENCE:
+            counts["little_evidence"] += 1
+            why[o.name] = o.why
+        else:
+            counts["skipped"] += 1
+            why[o.name] = o.why
+    movable = counts["things"] - counts["static_class"]
+    share = counts["dynamic"] / movable if movable else 1.0
+    passed = movable == 0 or share >= min_dynamic
+    line = (f"{counts['dynamic']} of {movable} thing(s) dynamic" + "".join(
+        f", {counts[k]} {w}" for k, w in (("pinned", "pinned static (unstable)"),
+                                          ("little_evidence", "static (too little evidence)"),
+                                          ("skipped", "skipped"), ("static_class", "static furniture")) if counts[k]))
+    return {**counts, "movable": movable, "dynamic_share": share, "min_dynamic": float(min_dynamic),
+            "passed": bool(passed), "summary": line, "not_dynamic": why}
+
+
+def gravity_aligned(scene, up: str = "auto"):
+    """(scene turned so that its gravity-up is +z, psimap.geometry.gravity.UpEstimate). An estimate
+    that is +z already (snapped within a degree) leaves the scene as it is."""
+    from psimap.geometry.gravity import resolve_up
+
+    est = resolve_up(up, *scene.up_evidence())
+    if np.array_equal(est.rotation, np.eye(3)):
+        return scene, est
+    return scene.rotated(est.rotation), est
 
 
 def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: dict | None = None) -> dict:
@@ -170,22 +237,21 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
     return res
 
 
-def assign_roles(objs, static_classes=None, min_rigid_surfels: int = MIN_RIGID_SURFELS) -> None:
+def assign_roles(objs, static_classes=None, min_coverage: float = MIN_COVERAGE) -> None:
     """The role of each object (none skipped, not the environment) for this export: static for
-    objects of a static class and objects seen too little to be a reliable rigid body (fewer than
-    min_rigid_surfels surfels in the checkpoint), dynamic otherwise. Decided anew on every call (the
+    objects of a static class and objects seen too little to be a reliable rigid body (less than
+    min_coverage of their surface observed), dynamic otherwise. Decided anew on every call (the
     same objects can be exported with other rules)."""
     from psimap.exporters.physics import is_static_class
 
     for o in objs:
         o.make_dynamic()
+        cov = o.measured.coverage
         if is_static_class(o.label, static_classes):
             o.make_static(Reason.STATIC_CLASS, f"static furniture class: '{o.label}'")
-        elif 0 <= o.surfel_count < min_rigid_surfels:
-            o.make_static(Reason.LITTLE_EVIDENCE, f"too little evidence for a rigid body: {o.surfel_count} "
-                                                  f"surfels < {min_rigid_surfels}")
-
-
+        elif 0 <= cov < min_coverage:
+            o.make_static(Reason.LITTLE_EVIDENCE, f"too little evidence for a rigid body: {cov:.0%} of its "
+                                                  f"surface seen < {min_coverage:.0%}")
 
 
 def _write_meshes(scene, root: Path) -> dict:

@@ -39,7 +39,8 @@ def object_entry(obj, files: dict) -> dict:
         # the environment is static without a reason to give
         "static_reason": obj.why if obj.role is Role.STATIC and obj.reason is not Reason.ENVIRONMENT else None,
         "surfels": int(obj.surfel_count), "skipped": obj.why if obj.role is Role.SKIPPED else None,
-        "faces_before": int(m.faces_before), "faces_after": int(m.faces_after),
+        "observed_coverage": m.coverage,
+        "faces_before": int(m.faces_before), "faces_after": int(m.faces_after), "face_budget": int(m.face_budget),
         "decimation_error_m": m.decimation_error, "decimation_mean_error_m": m.decimation_mean_error,
         "decimation_budget_m": m.decimation_budget,
         "watertight": bool(m.watertight), "completed": bool(m.completed),
@@ -62,7 +63,10 @@ def object_entry(obj, files: dict) -> dict:
         p = obj.physics
         e["physics"] = {"mass_kg": p.mass, "volume_m3": p.volume, "density_kg_m3": p.density,
                         "density_key": p.density_key, "friction": p.friction, "com": p.com,
-                        "principal_inertia": p.principal_inertia}
+                        "principal_inertia": p.principal_inertia, "mass_model": p.model,
+                        "mass_range_kg": list(p.mass_range)}
+        if p.model == "shell":
+            e["physics"]["areal_density_kg_m2"] = p.areal_density
     return e
 
 

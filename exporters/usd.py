@@ -6,8 +6,10 @@ Xform (RigidBodyAPI, MassAPI with mass / centre of mass / principal inertia) hol
 colliders (CollisionAPI; convex parts with MeshCollisionAPI approximation convexHull, primitives as
 UsdGeom Sphere / Cube / Cylinder). The class goes on the object through UsdSemantics.LabelsAPI
 ("class" taxonomy, what Isaac Sim's labelling reads) and the instance id as `psimap:instanceId`.
-The background is static (no RigidBodyAPI) with a triangle-mesh collider (approximation none);
-so is a static object (furniture, barely seen or pinned things): colliders without RigidBodyAPI / MassAPI.
+The background is visual only; the static world collides through /World/environment: one convex
+Mesh per collider of exporters.environment (CollisionAPI, MeshCollisionAPI convexHull, purpose guide,
+`psimap:role` support / wall / ceiling / clutter), the same set the MJCF has, and the floor box. A
+static object (furniture, barely seen or pinned things) has colliders without RigidBodyAPI / MassAPI.
 """
 from __future__ import annotations
 
@@ -126,12 +128,25 @@ def write_usd(scene, out_dir: str | Path) -> Path:
     if background is not None:
         bg = UsdGeom.Xform.Define(stage, f"/World/{background.name}")
         _visual(stage, bg.GetPath().pathString, background, np.zeros(3), assets, "assets")
-        col = _mesh_prim(stage, f"{bg.GetPath()}/collision", np.asarray(background.mesh.vertices, np.float64),
-                         np.asarray(background.mesh.faces))
-        UsdGeom.Imageable(col).CreatePurposeAttr(UsdGeom.Tokens.guide)
-        UsdPhysics.CollisionAPI.Apply(col.GetPrim())
-        UsdPhysics.MeshCollisionAPI.Apply(col.GetPrim()).CreateApproximationAttr(UsdPhysics.Tokens.none)
         label(bg.GetPrim(), background)
+    if scene.environment is not None and scene.environment.colliders:
+        from pxr import UsdShade
+
+        UsdGeom.Xform.Define(stage, "/World/environment")
+        env_mat = UsdShade.Material.Define(stage, "/World/environment/Looks/PhysicsMaterial")
+        phys = UsdPhysics.MaterialAPI.Apply(env_mat.GetPrim())
+        phys.CreateStaticFrictionAttr(0.8)
+        phys.CreateDynamicFrictionAttr(0.8)
+        phys.CreateRestitutionAttr(0.0)
+        for c in scene.environment.colliders:
+            pm = _mesh_prim(stage, f"/World/environment/{c.name}", np.asarray(c.mesh.vertices, np.float64),
+                            np.asarray(c.mesh.faces))
+            UsdGeom.Imageable(pm).CreatePurposeAttr(UsdGeom.Tokens.guide)
+            UsdPhysics.CollisionAPI.Apply(pm.GetPrim())
+            UsdPhysics.MeshCollisionAPI.Apply(pm.GetPrim()).CreateApproximationAttr(UsdPhysics.Tokens.convexHull)
+            pm.GetPrim().CreateAttribute("psimap:role", Sdf.ValueTypeNames.Token).Set(c.role)
+            UsdShade.MaterialBindingAPI.Apply(pm.GetPrim()).Bind(env_mat, UsdShade.Tokens.weakerThanDescendants,
+                                                                 "physics")
 
     for o in objects:
         ph = o.physics

@@ -13,8 +13,12 @@ from psimap import scene
 class Scene(scene.Scene):
     """A trained scene (`psimap.scene.Scene`) with its per-object assets one call away."""
 
-    def objects(self, **kw):
-        """Per-object meshes, metres, world frame (psimap.exporters.objects.extract_objects)."""
+    def objects(self, up: str = "auto", **kw):
+        """Per-object meshes, metres, in the gravity-aligned world frame (Z-up: the capture turned by
+        the rotation `up` gives, psimap.exporters.pipeline.gravity_aligned; "+z" keeps the capture's
+        frame as it is). psimap.exporters.objects.extract_objects does the work."""
         from psimap.exporters.objects import extract_objects
+        from psimap.exporters.pipeline import gravity_aligned
 
-        return extract_objects(self, **kw)
+        scene, _ = gravity_aligned(self, up)
+        return extract_objects(scene, **kw)

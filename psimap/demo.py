@@ -162,12 +162,16 @@ def stage_export(state: DemoState) -> str:
     state.results["export"] = report
     check = report.get("check", {})
     objs = report.get("objects", [])
+    outcome = report["outcome"]
     if check.get("passed"):
         verdict = "passed"
     else:
         verdict = "FAILED: " + ("; ".join(check.get("failures", [])) or "see report.json")
         state.failed = "simulation check failed"
-    return (f"{len(objs)} objects -> {state.out / 'export'} (scene.xml, scene.usda, scene.glb, report.json); "
+    if not outcome["passed"]:
+        state.failed = state.failed or f"too few things dynamic ({outcome['summary']})"
+    return (f"{outcome['summary']}\n  "
+            f"{len(objs)} objects -> {state.out / 'export'} (scene.xml, scene.usda, scene.glb, report.json); "
             f"simulation check {verdict} (min contact dist {check.get('min_contact_dist', 0.0) * 1000:.2f} mm, "
             f"max drift {check.get('max_drift', 0.0) * 100:.2f} cm, {len(check.get('nudges', {}))} nudged"
             + (f", pinned static as unstable: {', '.join(check['pinned'])}" if check.get("pinned") else "") + ")")

@@ -110,6 +110,12 @@ class ExportOptions:
                                     "barely seen objects too)")
     no_pin_unstable: bool = opt(False, "keep objects that do not rest stably in the settle check dynamic "
                                        "(the check then fails) instead of exporting them static")
+    min_dynamic: float = opt(0.5, "fail (exit 2) when fewer than this share of the things found, those not "
+                                  "static by class, come out dynamic (pinned, skipped or too little "
+                                  "evidence); 0 = never")
+    up: str = opt("auto", "which way is up in the capture: auto (estimated from its supports, walls and "
+                          "cameras), or +z, -z, +y, -y, +x, -x, or a vector 'x,y,z'; the scene is exported "
+                          "Z-up and the rotation recorded in report.json")
     overwrite: bool = overwrite_opt("folder")
 
 

@@ -77,16 +77,37 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
     tree = ET.parse(path)
     bodies = {b.get("name"): b for b in tree.getroot().iter("body") if b.get("name")}
     nudges: dict[str, float] = {}
+    _lift_out(tree, bodies, path, nudges, max_penetration, margin, max_rounds)
+    if max_gap > 0:
+        lower_onto_supports(tree, bodies, path, nudges, max_gap, min_gap=max_penetration, margin=margin,
+                            max_rounds=max_rounds)
+        # rays find the first contact from the body's own points; a support's corner poking up into
+        # a face (an unlabelled ramp's hull under a box) is met earlier: lift out of that again
+        _lift_out(tree, bodies, path, nudges, max_penetration, margin, max_rounds)
+    nudges = {k: v for k, v in nudges.items() if abs(v) > 1e-9}
+    if nudges:
+        with atomic_path(path) as tmp:
+            tree.write(tmp, encoding="unicode")
+            with open(tmp, "a") as f:
+                f.write("\n")
+    return {k: float(v) for k, v in sorted(nudges.items())}
+
+
+def _lift_out(tree, bodies: dict, path: Path, nudges: dict[str, float], max_penetration: float, margin: float,
+              max_rounds: int) -> None:
+    """Lift penetrating free bodies (+z) until min contact.dist >= -max_penetration: per penetrating
+    contact the body on top (the higher centre of mass) leaves the one under it, never the support
+    (lifting a table out of the cup on it drops the table). Edits `tree`, adds to `nudges`."""
+    import mujoco
+
     for _ in range(max_rounds):
-        model = _load(path) if not nudges else _model_from_tree(tree, path)
+        model = _model_from_tree(tree, path)
         data = mujoco.MjData(model)
         mujoco.mj_forward(model, data)
         min_dist, _, _ = _penetrations(model, data)
         if min_dist >= -max_penetration:
-            break
+            return
         free = set(_free_bodies(model))
-        # per penetrating contact, lift the body on top (the higher centre of mass) out of the one
-        # under it, never the support: lifting a table out of the cup on it drops the table
         movable: dict[int, float] = {}
         for i in range(data.ncon):
             c = data.contact[i]
@@ -100,19 +121,9 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
             top = max(cands, key=lambda b: float(data.xipos[b][2])) if len(cands) == 2 else cands[0]
             movable[top] = max(movable.get(top, 0.0), depth)
         if not movable:
-            break
+            return
         for b, depth in movable.items():
             _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), depth + margin, nudges)
-    if max_gap > 0:
-        lower_onto_supports(tree, bodies, path, nudges, max_gap, min_gap=max_penetration, margin=margin,
-                            max_rounds=max_rounds)
-    nudges = {k: v for k, v in nudges.items() if abs(v) > 1e-9}
-    if nudges:
-        with atomic_path(path) as tmp:
-            tree.write(tmp, encoding="unicode")
-            with open(tmp, "a") as f:
-                f.write("\n")
-    return {k: float(v) for k, v in sorted(nudges.items())}
 
 
 def _shift_body(bodies: dict, name: str, dz: float, nudges: dict[str, float]) -> None:

@@ -105,13 +105,14 @@ def test_cli_static_flags_reach_export(monkeypatch, tmp_path, args, expect):
 
     def fake_export(scene, out, fmt, **kw):
         seen.update(kw)
-        return {"objects": [], "skipped": [], "check": None, "timings": {}}
+        return {"objects": [], "skipped": [], "check": None, "timings": {},
+                "outcome": {"passed": True, "summary": "0 of 0 thing(s) dynamic", "min_dynamic": 0.5}}
 
     monkeypatch.setattr(psimap.scene, "load_scene", lambda path: object())   # the CLI loads with it
     monkeypatch.setattr(pipeline, "export_scene", fake_export)
     assert main(["export", str(tmp_path / "x.ckpt"), "--out", str(tmp_path / "o"), *args]) == 0
     assert set(seen["static_classes"]) == (set(STATIC_CLASSES) if expect == "default" else expect)
-    assert seen.get("min_rigid_surfels", 30) == (0 if "--dynamic-all" in args else 30)
+    assert seen.get("min_coverage", 0.3) == (0.0 if "--dynamic-all" in args else 0.3)
     assert seen["pin_unstable"] is ("--dynamic-all" not in args)     # everything dynamic: nothing pinned
     seen.clear()
     assert main(["export", str(tmp_path / "x.ckpt"), "--out", str(tmp_path / "o"), "--no-pin-unstable"]) == 0
@@ -119,22 +120,21 @@ def test_cli_static_flags_reach_export(monkeypatch, tmp_path, args, expect):
 
 
 def test_barely_seen_object_is_static_with_reason(tmp_path):
-    from psimap.exporters.pipeline import MIN_RIGID_SURFELS, export_scene
+    from psimap.exporters.pipeline import MIN_COVERAGE, export_scene
 
     objs = _scene()
-    objs[1].surfel_count = MIN_RIGID_SURFELS - 1      # the box: a handful of surfels in the checkpoint
+    objs[1].measured.coverage = MIN_COVERAGE - 0.01     # the box: its views saw a sliver of it
     r = export_scene(objs, tmp_path / "t", "mjcf", check=False)
     e = {o["name"]: o for o in r["objects"]}
-    assert e["box_2"]["static"] and e["box_2"]["surfels"] == MIN_RIGID_SURFELS - 1
-    assert "too little evidence" in e["box_2"]["static_reason"]
+    assert e["box_2"]["static"] and e["box_2"]["observed_coverage"] == pytest.approx(MIN_COVERAGE - 0.01)
+    assert "too little evidence" in e["box_2"]["static_reason"] and "29% of its surface seen" in e["box_2"]["static_reason"]
     assert _bodies(tmp_path / "t" / "scene.xml")["box_2"].find("freejoint") is None
-    # enough surfels, or the rule switched off: dynamic again (the mark is recomputed per export)
-    objs[1].surfel_count = MIN_RIGID_SURFELS
-    r = export_scene(objs, tmp_path / "u", "mjcf", check=False)
-    assert not {o["name"]: o for o in r["objects"]}["box_2"]["static"]
-    objs[1].surfel_count = 3
-    r = export_scene(objs, tmp_path / "v", "mjcf", check=False, min_rigid_surfels=0)
-    assert not {o["name"]: o for o in r["objects"]}["box_2"]["static"]
+    assert r["outcome"]["little_evidence"] == 1
+    # seen enough, unknown (-1: a scan), or the rule switched off: dynamic again (recomputed per export)
+    for cov, kw in ((MIN_COVERAGE, {}), (-1.0, {}), (0.05, {"min_coverage": 0.0})):
+        objs[1].measured.coverage = cov
+        r = export_scene(objs, tmp_path / f"u{cov}", "mjcf", check=False, **kw)
+        assert not {o["name"]: o for o in r["objects"]}["box_2"]["static"]
 
 
 def _box_on_ramp(angle_deg=35.0):
