@@ -6,7 +6,7 @@ stays cheap; torch loads only when a function runs.
 from __future__ import annotations
 
 _EXPORTS = {
-    "PanopticConfig": "psimap.panoptic.field",
+    "PanopticConfig": "psimap.panoptic.config",
     "PanopticField": "psimap.panoptic.field",
     "fit_panoptic": "psimap.panoptic.field",
     "render_labels": "psimap.panoptic.labels",

@@ -8,7 +8,7 @@ possibly learnable, geometry, so the panoptic losses also reach geometry through
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import numpy as np
 import torch
@@ -17,63 +17,9 @@ import torch.nn.functional as F
 
 from psimap import PsimapError
 from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, useless_queries
+from psimap.panoptic.config import PanopticConfig
 from psimap.panoptic.matching import hungarian_match, mask_windows, masks_from_ids, matched_mask_loss
 from psimap.panoptic.queries import InstanceQueries, init_from_points
-
-
-@dataclass
-class PanopticConfig:
-    feat_dim: int = 16              # instance feature size per surfel and query
-    topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
-    temperature: float = 0.1        # softmax temperature over query affinities
-    init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
-    # 2D masks smaller than this fraction of the image are ignored (5 px at 160x120: bottles and
-    # balls there cover a median 7-20 px; the former 0.002 = 38 px ignored most of their masks)
-    min_mask_fraction: float = 0.0003
-    # pixels sampled per frame for matching and losses (all of a 160x120 frame: at 4096 a 12 px
-    # mask kept ~3 pixels and its matching cost was noise)
-    pixels_per_step: int = 20000
-    w_ins: float = 1.0              # lambda_3
-    w_sem: float = 1.0              # lambda_4
-    lr_surfel: float = 0.02         # Adam lr of per-surfel features
-    lr_query: float = 0.01          # Adam lr of queries and attention weights
-    reject_dice: float = 0.95       # matches with Dice cost above this are not supervised
-    # class term of the matching cost (0 = Dice + BCE only). Off by default: at 15 % noise (160x120,
-    # seeds 0 / 1) weight 1 gave PQ 0.647 / 0.757 against 0.675 / 0.755 without it (RESULTS.md)
-    w_class: float = 0.0
-    adjust_start: int = 60          # first step of dynamic query adjustment
-    adjust_every: int = 60          # then every this many steps
-    # useless: matched in fewer of the frames that see it. Real objects' queries were matched in
-    # >= 0.56 of them at 15 % noise (seeds 0-2); at 0.1 a query on a cabinet's border, matched in
-    # 8 of 53 frames, survived as a false instance (seed 2: PQ 0.861 -> 0.921 at 0.3)
-    min_match_rate: float = 0.3
-    iom_threshold: float = 0.6      # duplicate: IoM with a larger query above this
-    mask_affinity: float = 0.5      # 3D mask of a query: surfels with A(q, g) above this
-    # 3D mask for the IoM test: "affinity" = A > mask_affinity; "share" = softmax share > mask_share
-    # ("share" collapsed two unconverged box queries into one in tests/test_panoptic_field.py)
-    mask_mode: str = "affinity"
-    mask_share: float = 0.3
-    min_instance_surfels: int = 10  # instances with fewer surfels are dropped at export
-    # duplicate rule: two queries matched to two different 2D masks of one frame in at least this
-    # many frames are different objects, whatever their 3D IoM (0 = off)
-    distinct_frames: int = 2
-    # final cleanup: a thing surfel takes the majority instance of its k nearest thing surfels
-    # (argmax noise on object borders); 0 = off
-    smooth_k: int = 8
-    # export: a thing surfel's instance maximises p(q | g) * p(class of q | g), the instance and the
-    # semantic heads combined, instead of p(q | g) alone (a mug's border surfels won by the table's
-    # query but whose semantics say "mug" go to the mug)
-    class_fusion: bool = True
-    # an instance's class = the majority class of the 2D masks its query was matched to (a merged
-    # mask goes to the larger object's query, so its class does not leak onto the smaller object,
-    # whose surfels' own semantics it does drag: a mug's pixels were 49 % "table" at 15 % noise);
-    # False = majority of the instance's surfels' semantic argmax
-    query_class: bool = True
-    spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
-    spawn_feature: bool = True      # a spawned query starts from its mask's surfels' features
-    spawn_split: bool = True        # no spawn for a mask drawn mostly by a query busy with a same-class mask
-    max_spawn_per_step: int = 2
-    max_queries: int = 256
 
 
 def class_tables(classes) -> tuple[torch.Tensor, torch.Tensor]:
@@ -199,8 +145,7 @@ class PanopticField(nn.Module):
         self.steps = 0
         # (point set [P, 3], feature [F] or None) of masks that no query covers
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None]] = []
-        self.last_drops: dict[str, int] = {}
-        self.drop_log: list[tuple[int, dict]] = []    # (step, {rule: queries dropped}) per adjustment
+        self.last_drops: dict[str, int] = {}          # {rule: queries dropped} at the last adjustment
         self._gen = generator
         self._make_optimizers()
 
@@ -314,18 +259,6 @@ class PanopticField(nn.Module):
             return None
         scale = max(1.0, float(self.queries.feature.detach().norm(dim=-1).max())) if self.queries.count else 1.0
         return f / norm * scale
-
-    def remap(self, idx: torch.Tensor) -> None:
-        """Follow the trainer's densification: new surfel j takes old surfel idx[j]'s parameters."""
-        state = {k: self.opt_surfel.state.get(p, {}) for k, p in (("s", self.semantic), ("i", self.instance))}
-        self.semantic = nn.Parameter(self.semantic.detach()[idx].clone())
-        self.instance = nn.Parameter(self.instance.detach()[idx].clone())
-        old_s, old_i = state["s"], state["i"]
-        self.opt_surfel = torch.optim.Adam([self.semantic, self.instance], lr=self.cfg.lr_surfel)
-        for p, st in ((self.semantic, old_s), (self.instance, old_i)):
-            if st:
-                self.opt_surfel.state[p] = {"step": st["step"], "exp_avg": st["exp_avg"][idx].clone(),
-                                            "exp_avg_sq": st["exp_avg_sq"][idx].clone()}
 
     # ---- losses -------------------------------------------------------------------------------
     def losses(self, render, means: torch.Tensor, visible_idx: torch.Tensor, instance: torch.Tensor | None,
@@ -448,13 +381,7 @@ class PanopticField(nn.Module):
         q = self.queries.count
         if q <= 1:
             return 0
-        if self.cfg.mask_mode == "share":
-            # ownership after the softmax competition: two queries on one object split it (both
-            # masks hold it, IoM high), while a small object's own query wins it from a large
-            # enclosing one (no overlap), so small objects are not pruned as duplicates
-            masks = torch.softmax(self.affinity_all(means) / self.queries.temperature, -1) > self.cfg.mask_share
-        else:
-            masks = self.affinity_all(means) > self.cfg.mask_affinity               # [N, Q]
+        masks = self.affinity_all(means) > self.cfg.mask_affinity                   # [N, Q]
         old_enough = (self.steps - self.born) >= self.cfg.adjust_every              # grace for new ones
         distinct = (self.comatched >= self.cfg.distinct_frames) if self.cfg.distinct_frames > 0 else None
         dup = duplicate_queries(masks, self.cfg.iom_threshold, distinct) & old_enough
@@ -471,11 +398,10 @@ class PanopticField(nn.Module):
                                       self.matched) & old_enough
         empty = (masks.sum(0) == 0) & old_enough                                     # covers nothing
         drop = dup | useless | empty | fragment
-        # which rule fired (a query may break several): read by the log and the benchmark
+        # which rule fired (a query may break several): read by the training log
         self.last_drops = {"duplicate": int(dup.sum()), "fragment": int((fragment & ~dup).sum()),
                            "useless": int((useless & ~dup & ~fragment).sum()),
                            "empty": int((empty & ~dup & ~useless & ~fragment).sum())}
-        self.drop_log.append((self.steps, dict(self.last_drops)))
         if bool(drop.all()):                                                         # keep the best one
             drop[int(torch.argmax(self.matched))] = False
         keep = ~drop

@@ -1,7 +1,17 @@
-"""Every training weight and schedule in one dataclass, with defaults and help text."""
+"""Every training weight and schedule in one dataclass, with defaults and help text.
+
+The panoptic field's own settings live in `psimap.panoptic.config.PanopticConfig`; the few that
+`psimap train` exposes (`PANOPTIC_FIELDS`) take their defaults from it.
+"""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
+
+from psimap.panoptic.config import PanopticConfig
+
+# TrainConfig field -> PanopticConfig field it sets (names kept: they are checkpoint config keys)
+PANOPTIC_FIELDS = {"panoptic_feat_dim": "feat_dim", "panoptic_topk": "topk",
+                   "lambda_ins": "w_ins", "lambda_sem": "w_sem"}
 
 
 def _f(default, help: str):
@@ -80,10 +90,13 @@ class TrainConfig:
                               "pseudo-labels")
     panoptic_iters: int = _f(400, "joint steps (geometry + panoptic losses) after the geometry "
                                   "schedule, on the frozen surfel set")
-    lambda_ins: float = _f(1.0, "lambda_3: L_ins, Dice + BCE of Hungarian-matched query masks")
-    lambda_sem: float = _f(1.0, "lambda_4: L_sem, cross-entropy of the rendered semantic logits")
-    panoptic_topk: int = _f(8, "Top-K hard selection: features blend over the K largest weights")
-    panoptic_feat_dim: int = _f(16, "instance feature size per surfel and query")
+    lambda_ins: float = _f(PanopticConfig.w_ins, "lambda_3: L_ins, Dice + BCE of Hungarian-matched "
+                                                 "query masks")
+    lambda_sem: float = _f(PanopticConfig.w_sem, "lambda_4: L_sem, cross-entropy of the rendered "
+                                                 "semantic logits")
+    panoptic_topk: int = _f(PanopticConfig.topk, "Top-K hard selection: features blend over the K "
+                                                 "largest weights")
+    panoptic_feat_dim: int = _f(PanopticConfig.feat_dim, "instance feature size per surfel and query")
     panoptic_geometry: bool = _f(False, "panoptic losses also move geometry in the panoptic steps "
                                         "(on the demo scene joint updates lowered F1@5cm from 0.950 to "
                                         "0.843 and PQ too; see benchmarks/RESULTS.md)")
@@ -97,11 +110,6 @@ class TrainConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in (d or {}).items() if k in names})
-
-    @classmethod
-    def help(cls) -> dict[str, str]:
-        return {f.name: f.metadata["help"] for f in fields(cls)}
+    def panoptic_config(self) -> PanopticConfig:
+        """The panoptic field's settings: PanopticConfig defaults with this config's overrides."""
+        return PanopticConfig(**{p: getattr(self, t) for t, p in PANOPTIC_FIELDS.items()})

@@ -30,14 +30,13 @@ def panoptic_phase(params: dict, frames, classes, cfg, *, index, spacing: float,
     """
     from tqdm import tqdm
 
-    from psimap.panoptic.field import PanopticConfig, PanopticField, init_queries, visible_surfels
+    from psimap.panoptic.field import PanopticField, init_queries, visible_surfels
     from psimap.render import rasterize
     from psimap.train import losses as L
     from psimap.train.trainer import PARAM_NAMES, _optimizer, loss_terms
 
     t0 = time.perf_counter()
-    pcfg = PanopticConfig(feat_dim=cfg.panoptic_feat_dim, topk=cfg.panoptic_topk,
-                          w_ins=cfg.lambda_ins, w_sem=cfg.lambda_sem)
+    pcfg = cfg.panoptic_config()
     labelled = [fr for fr in frames if fr.instance is not None or fr.semantic is not None]
     queries = init_queries(labelled, classes, pcfg, scene_scale=extent, generator=generator)
     n = int(params["means"].shape[0])
