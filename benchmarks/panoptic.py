@@ -5,6 +5,7 @@ Synthetic scenes (`psimap.data.synthetic.generate`) at pseudo-label noise 0 %, 1
 the ground truth: surfels from `scene_from_meshes` on gt/objects plus the stuff faces of
 gt/mesh.ply, so the panoptic part is measured alone. On the same frames, in the same run:
 - psimap: `fit_panoptic` (queries, Hungarian supervision, query adjustment) -> hard surfel labels;
+  the same loop (`psimap.panoptic.fit.train_field`) that `psimap train` runs on trained geometry;
 - baseline: `baseline_panoptic` (per-frame masks lifted to voxels, merged greedily by IoM);
 - oracle: the GT surfel labels rendered the same way (the ceiling of this evaluation protocol).
 Labels of every frame are rendered with `render_labels` and scored against the GT label maps:
@@ -98,7 +99,7 @@ def score(scene, frames, things, topk=None, supersample=None):
 
 
 def run_psimap(scene, frames, iters, cfg, seed):
-    from psimap.panoptic.field import fit_panoptic
+    from psimap.panoptic.fit import fit_panoptic
 
     surf = {k: scene.surfels[k].float() for k in ("means", "quats", "scales", "opacities")}
     t0, c0 = time.perf_counter(), time.process_time()

@@ -7,7 +7,7 @@ from psimap.camera import orbit
 from psimap.data.frames import ClassInfo, Frame
 from psimap.metrics.panoptic import panoptic_metrics
 from psimap.panoptic.config import PanopticConfig
-from psimap.panoptic.field import fit_panoptic
+from psimap.panoptic.fit import fit_panoptic
 from psimap.render import rasterize
 
 CLASSES = [ClassInfo(1, "floor", False), ClassInfo(2, "box", True)]

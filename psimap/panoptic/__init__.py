@@ -8,7 +8,7 @@ from __future__ import annotations
 _EXPORTS = {
     "PanopticConfig": "psimap.panoptic.config",
     "PanopticField": "psimap.panoptic.field",
-    "fit_panoptic": "psimap.panoptic.field",
+    "fit_panoptic": "psimap.panoptic.fit",
     "render_labels": "psimap.panoptic.labels",
     "write_labels": "psimap.panoptic.labels",
     "instance_classes": "psimap.panoptic.labels",

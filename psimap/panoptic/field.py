@@ -2,9 +2,9 @@
 per-frame Hungarian supervision from noisy 2D masks, and dynamic query adjustment.
 
 Rendering is injected: `losses(render, ...)` calls `render(idx [V], features [V, C], topk)` which
-must return a RenderOutput of the visible surfels `idx` (the trainer renders them with its current,
+must return a RenderOutput of the visible surfels `idx` (the caller renders them with its current,
 possibly learnable, geometry, so the panoptic losses also reach geometry through the Top-K weights).
-`fit_panoptic` trains the field alone on fixed geometry (a scene with trained or ground-truth surfels).
+The training loop that drives the field is `psimap.panoptic.fit`.
 """
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from psimap import PsimapError
 from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, useless_queries
 from psimap.panoptic.config import PanopticConfig
 from psimap.panoptic.matching import hungarian_match, mask_windows, masks_from_ids, matched_mask_loss
@@ -558,87 +557,3 @@ def smooth_instances(means: torch.Tensor, inst: torch.Tensor, thing: torch.Tenso
     new = np.where(change, uniq[best], inst[idx].numpy())
     out[idx] = torch.as_tensor(new, dtype=inst.dtype)
     return out
-
-
-def visible_surfels(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
-    """Indices [V] of surfels whose 3-sigma footprint touches the image (the frustum-local set)."""
-    from psimap.render.project import project_surfels
-
-    with torch.no_grad():
-        p = project_surfels(means, quats, scales, opacities, w2c.to(means.dtype), K.to(means.dtype),
-                            width, height, near, far)
-        box = p.box_precise
-        hit = p.valid & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
-    return torch.nonzero(hit).flatten()
-
-
-def fit_panoptic(surfels: dict, frames, classes, *, iters: int = 300, cfg: PanopticConfig | None = None,
-                 seed: int = 0, backend: str = "auto", progress: bool = False, log=None) -> dict:
-    """Train the panoptic field on fixed geometry; returns `PanopticField.state_for_checkpoint`.
-
-    surfels: means [N,3], quats [N,4], scales [N,2], opacities [N] (tensors); frames: a sequence of
-    Frame with per-frame pseudo-labels. Frames with no labels are skipped.
-    """
-    threads = torch.get_num_threads()
-    # Per-step tensors are small: torch's intra-op threads only spin-wait (measured: 40 steps took
-    # 3 s on one thread, 66 s on two on a busy 2-core machine).
-    torch.set_num_threads(1)
-    try:
-        return _fit_panoptic(surfels, frames, classes, iters=iters, cfg=cfg, seed=seed, backend=backend,
-                             progress=progress, log=log)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _fit_panoptic(surfels, frames, classes, *, iters, cfg, seed, backend, progress, log) -> dict:
-    from tqdm import tqdm
-
-    from psimap.render import rasterize
-
-    cfg = cfg or PanopticConfig()
-    if not len(frames):
-        raise PsimapError("fit_panoptic: no frames")
-    g = torch.Generator().manual_seed(seed)
-    means = surfels["means"].float()
-    quats, scales, opac = surfels["quats"].float(), surfels["scales"].float(), surfels["opacities"].float()
-    colors = torch.zeros_like(means)
-    extent = float((means.max(0).values - means.min(0).values).norm()) if means.shape[0] else 1.0
-    queries = init_queries(frames, classes, cfg, scene_scale=extent, generator=g)
-    field = PanopticField(means.shape[0], classes, queries, cfg, generator=g)
-    labelled = [i for i in range(len(frames)) if frames[i].instance is not None or frames[i].semantic is not None]
-    if not labelled:
-        raise PsimapError("fit_panoptic: no frame has semantic or instance pseudo-labels")
-    order = torch.randint(len(labelled), (iters,), generator=g).tolist()
-    visible_cache: dict[int, torch.Tensor] = {}
-    bar = tqdm(order, desc="panoptic", disable=not progress)
-    for it, j in enumerate(bar):
-        fr = frames[labelled[j]]
-        K = torch.as_tensor(fr.K, dtype=torch.float32)
-        w2c = torch.as_tensor(np.linalg.inv(fr.c2w), dtype=torch.float32)
-        h, w = fr.height, fr.width
-        if labelled[j] not in visible_cache:          # geometry is fixed here: once per frame
-            visible_cache[labelled[j]] = visible_surfels(means, quats, scales, opac, w2c, K, w, h)
-        vis = visible_cache[labelled[j]]
-
-        def render(idx, feats, topk):
-            return rasterize(means[idx], quats[idx], scales[idx], opac[idx], colors[idx], w2c, K, w, h,
-                             features=feats, topk=topk, backend=backend)
-
-        inst = None if fr.instance is None else torch.as_tensor(np.asarray(fr.instance, dtype=np.int64))
-        sem = None if fr.semantic is None else torch.as_tensor(np.asarray(fr.semantic, dtype=np.int64))
-        field.zero_grad()
-        depth = torch.as_tensor(np.asarray(fr.depth, dtype=np.float32))
-        l_ins, l_sem, info = field.losses(render, means, vis, inst, sem, K, w2c, w, h, generator=g, depth=depth)
-        loss = l_ins + l_sem
-        if not torch.isfinite(loss):
-            raise PsimapError(f"panoptic training diverged at step {it}: L_ins={float(l_ins)}, L_sem={float(l_sem)}")
-        loss.backward()
-        field.step()
-        removed = field.maybe_adjust(means)
-        if progress:
-            bar.set_postfix(ins=f"{float(l_ins):.3f}", sem=f"{float(l_sem):.3f}", queries=field.queries.count)
-        if log is not None and (removed or it % 50 == 0):
-            drops = ", ".join(f"{v} {k}" for k, v in field.last_drops.items() if v) if removed else ""
-            log(f"step {it}: L_ins {float(l_ins):.4f} L_sem {float(l_sem):.4f} queries {field.queries.count}"
-                + (f" (-{removed}: {drops})" if removed else ""))
-    return field.state_for_checkpoint(means)

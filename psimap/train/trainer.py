@@ -2,20 +2,22 @@
 
 Flow: frames -> (SOGMM prior -> initial surfels, colour from the images) -> Adam over surfel
 parameters, one random frame per step, with L_rgb + depth L1 + L_geo + L_iso + 2DGS normal
-consistency / distortion -> adaptive density control within a surfel budget -> Scene.
+consistency / distortion -> adaptive density control within a surfel budget -> the panoptic
+field on the frozen surfel set (`panoptic_phase`, psimap.panoptic.fit's loop) -> Scene.
 """
 from __future__ import annotations
 
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from psimap import PsimapError
-from psimap.data.frames import DepthSized
+from psimap.nonfinite import Diverged, NonFiniteGuard, backward_if_finite
+from psimap.panoptic.fit import View
 from psimap.train.config import TrainConfig
 from psimap.train import losses as L
 from psimap.train.density import GradStats, accumulate, densify_and_prune, quat_to_rotmat
@@ -24,26 +26,15 @@ PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logit", "color_logit")
 
 
 @dataclass
-class TrainFrame(DepthSized):
-    """One training frame at training resolution: rgb [H,W,3], depth [H,W] (0 = invalid), K [3,3]
-    float32 tensors; c2w [4,4] float64 numpy (OpenCV); viewmat [4,4] float32 world-to-camera."""
+class TrainFrame(View):
+    """One training frame at training resolution: a View (depth, K, poses, pseudo-labels) with its
+    colour image rgb [H,W,3] float32 in [0, 1]."""
 
-    name: str
-    rgb: torch.Tensor
-    depth: torch.Tensor
-    K: torch.Tensor
-    c2w: np.ndarray
-    viewmat: torch.Tensor
-    semantic: torch.Tensor | None = None   # [H,W] long per-frame pseudo-labels (0 = none), or None
-    instance: torch.Tensor | None = None
+    rgb: torch.Tensor = field(kw_only=True)
 
     @property
     def valid(self) -> torch.Tensor:
         return self.depth > 0
-
-
-class Diverged(PsimapError):
-    """A loss term or gradient became NaN / inf for too many consecutive steps."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -84,7 +75,8 @@ def downscale_labels(label, factor: int, shape):
     return torch.from_numpy(np.ascontiguousarray(lab[: shape[0], : shape[1]]))
 
 
-def _to_train_frame(name, rgb, depth, K, c2w, semantic=None, instance=None) -> TrainFrame:
+def to_train_frame(name, rgb, depth, K, c2w, semantic=None, instance=None) -> TrainFrame:
+    """TrainFrame of numpy arrays: rgb [H,W,3], depth [H,W], K [3,3], c2w [4,4] (OpenCV)."""
     return TrainFrame(name=name, rgb=torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
                       depth=torch.from_numpy(np.ascontiguousarray(depth, np.float32)),
                       K=torch.as_tensor(K, dtype=torch.float32), c2w=np.asarray(c2w, np.float64),
@@ -117,11 +109,11 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
             continue
         factor = max(1, int(math.ceil(f.width / cfg.max_width)))
         r, d, K = downscale(rgb, depth, f.K, factor)
-        frames.append(_to_train_frame(f.name or str(i), r, d, K, f.c2w,
-                                      downscale_labels(f.semantic, factor, d.shape),
-                                      downscale_labels(f.instance, factor, d.shape)))
+        frames.append(to_train_frame(f.name or str(i), r, d, K, f.c2w,
+                                     downscale_labels(f.semantic, factor, d.shape),
+                                     downscale_labels(f.instance, factor, d.shape)))
         r2, d2, K2 = downscale(r, d, K, 2)
-        low.append(_to_train_frame(f.name or str(i), r2, d2, K2, f.c2w))
+        low.append(to_train_frame(f.name or str(i), r2, d2, K2, f.c2w))
     if skipped:
         log(f"skipping {len(skipped)} frame(s) without valid depth (or with NaN colour / pose): {', '.join(skipped[:5])}"
             f"{' ...' if len(skipped) > 5 else ''}")
@@ -206,15 +198,21 @@ def make_params(means, quats, scales, opacities, colors) -> dict:
             "color_logit": _logit(colors).requires_grad_(True)}
 
 
+def surfel_tensors(params: dict) -> tuple:
+    """(means [N,3], unit quats [N,4], scales [N,2], opacities [N], colors [N,3]) from the
+    parametrisation; differentiable in the leaf tensors."""
+    q = params["quats"]
+    return (params["means"], q / q.norm(dim=1, keepdim=True).clamp_min(1e-12), params["log_scales"].exp(),
+            torch.sigmoid(params["opacity_logit"]), torch.sigmoid(params["color_logit"]))
+
+
 def surfel_values(params: dict) -> dict:
     """Checkpoint surfels (contract) from the parametrisation (detached)."""
     with torch.no_grad():
-        q = params["quats"] / params["quats"].norm(dim=1, keepdim=True).clamp_min(1e-12)
-        n = params["means"].shape[0]
-        return {"means": params["means"].detach().clone(), "quats": q.clone(),
-                "scales": params["log_scales"].exp().clone(),
-                "opacities": torch.sigmoid(params["opacity_logit"]).clone(),
-                "colors": torch.sigmoid(params["color_logit"]).clone(),
+        means, quats, scales, opacities, colors = surfel_tensors(params)
+        n = means.shape[0]
+        return {"means": means.detach().clone(), "quats": quats.clone(), "scales": scales.clone(),
+                "opacities": opacities.clone(), "colors": colors.clone(),
                 "semantic": torch.zeros(n, 0), "instance": torch.zeros(n, 0)}
 
 
@@ -271,21 +269,21 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
 # training
 
 
-def _optimizer(params: dict, cfg: TrainConfig, extent: float):
+def make_optimizer(params: dict, cfg: TrainConfig, extent: float):
+    """Adam over the surfel parameters, one group per name (PARAM_NAMES order, group 0 = means);
+    returns (optimizer, the position step: lr_means x the scene extent)."""
     lrs = {"means": cfg.lr_means * extent, "quats": cfg.lr_quats, "log_scales": cfg.lr_scales,
            "opacity_logit": cfg.lr_opacity, "color_logit": cfg.lr_colors}
     groups = [{"params": [params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES]
+    # eps as in 3DGS: surfel gradients are tiny, and Adam's default 1e-8 would shrink their steps
     return torch.optim.Adam(groups, eps=1e-15), lrs["means"]
 
 
-def render(params: dict, fr: TrainFrame, need_features: bool = False):
+def render(params: dict, fr: TrainFrame):
+    """RenderOutput of all surfels in the view `fr`."""
     from psimap.render import rasterize
 
-    q = params["quats"]
-    return rasterize(params["means"], q / q.norm(dim=1, keepdim=True).clamp_min(1e-12),
-                     params["log_scales"].exp(), torch.sigmoid(params["opacity_logit"]),
-                     torch.sigmoid(params["color_logit"]), fr.viewmat, fr.K, fr.width, fr.height,
-                     backend="auto")
+    return rasterize(*surfel_tensors(params), fr.viewmat, fr.K, fr.width, fr.height, backend="auto")
 
 
 def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: float,
@@ -330,6 +328,34 @@ def depth_error(params: dict, frames) -> float:
         tot += float((out.depth - fr.depth).abs()[v].sum())
         cnt += int(v.sum())
     return tot / max(cnt, 1)
+
+
+def panoptic_phase(params: dict, frames, classes, cfg: TrainConfig, *, index, spacing: float,
+                   extent: float, lr_means: float, generator: torch.Generator, rng: np.random.Generator,
+                   log, progress: bool) -> tuple[dict, dict]:
+    """The panoptic field (paper §4.2) trained on the surfel set the geometry schedule froze
+    (`psimap.panoptic.fit.train_field`); with cfg.panoptic_geometry the geometry keeps training
+    with its own losses and the panoptic ones. Returns (checkpoint part, metrics).
+
+    params: the leaf tensors (PARAM_NAMES), replaced by detached ones on return; frames:
+    TrainFrames; lr_means: the position step the geometry schedule ended at (continued).
+    """
+    from psimap.panoptic.fit import JointGeometry, train_field
+
+    for k in PARAM_NAMES:
+        params[k] = params[k].detach().clone().requires_grad_(cfg.panoptic_geometry)
+    joint = None
+    if cfg.panoptic_geometry:
+        optimizer, _ = make_optimizer(params, cfg, extent)
+        optimizer.param_groups[0]["lr"] = lr_means
+        joint = JointGeometry(params={k: params[k] for k in PARAM_NAMES}, optimizer=optimizer,
+                              terms=lambda fr: loss_terms(params, fr, cfg, index, spacing, True, generator)[0])
+    state, metrics = train_field(frames, classes, cfg.panoptic_config(), lambda: surfel_tensors(params),
+                                 iters=cfg.panoptic_iters, scene_scale=extent, rng=rng, generator=generator,
+                                 joint=joint, log=log, progress=progress, log_every=cfg.log_every)
+    for k in PARAM_NAMES:
+        params[k] = params[k].detach()
+    return state, metrics
 
 
 def _isatty() -> bool:
@@ -407,14 +433,14 @@ def _train(data, cfg, *, resume, progress, log, callback):
 
     eval_frames = frames[:: max(1, len(frames) // 6)][:6]
     depth_err_start = depth_error(params, eval_frames)
-    optimizer, lr_means0 = _optimizer(params, cfg, extent)
+    optimizer, lr_means0 = make_optimizer(params, cfg, extent)
     grad_stats = GradStats.zeros(params["means"].shape[0])
     iters = int(cfg.iters)
     lowres_steps = int(cfg.lowres_until * iters)
     reg_from = int(cfg.regularize_from * iters)
     dens_from, dens_until = int(cfg.densify_from * iters), int(cfg.densify_until * iters)
     ema, first_loss = {}, None
-    guard = L.NonFiniteGuard(Diverged)
+    guard = NonFiniteGuard()
     recent, window = [], max(1, iters // 10)      # final loss = mean of the last 10 % of steps
     history = []
     dens_log = []
@@ -427,19 +453,12 @@ def _train(data, cfg, *, resume, progress, log, callback):
         geo_scale = 1.0 + (cfg.geo_final - 1.0) * step / max(iters - 1, 1)
         terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen,
                                 geo_scale=geo_scale)
-        bad = L.first_nonfinite(terms)
-        if bad is None:
-            loss = sum(terms.values())
-            loss.backward()
-            bad = next((f"gradient of {k}" for k in PARAM_NAMES
-                        if params[k].grad is not None and not bool(torch.isfinite(params[k].grad).all())),
-                       None)
+        bad = backward_if_finite(terms, {k: params[k] for k in PARAM_NAMES})
         if bad is not None:
             # skip this update: one bad frame must not poison the map; a persistent one is an error
             optimizer.zero_grad(set_to_none=True)
             try:
-                guard.skip(bad if bad.startswith("gradient") else f"loss term '{bad}'",
-                           f"training diverged at step {steps_before + step} (frame {fr.name})")
+                guard.skip(bad, f"training diverged at step {steps_before + step} (frame {fr.name})")
             except Diverged:
                 bar.close()
                 raise
@@ -486,9 +505,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
     panoptic_state, panoptic_metrics = None, {}
     classes = list(getattr(seq, "classes", []) or [])
     if cfg.panoptic and cfg.panoptic_iters > 0:
-        from psimap.train.panoptic_phase import has_labels, panoptic_phase
+        from psimap.panoptic.fit import labelled
 
-        if has_labels(frames):
+        if labelled(frames):
             panoptic_state, panoptic_metrics = panoptic_phase(
                 params, frames, classes, cfg, index=index, spacing=spacing, extent=extent,
                 lr_means=optimizer.param_groups[0]["lr"], generator=gen, rng=rng, log=log,
