@@ -62,7 +62,8 @@ class TrainConfig:
                                "plain-2DGS baseline (points + kNN scales, no L_geo)")
 
     # ---- learning rates (positions scale with the scene extent) --------------------------------
-    lr_means: float = _f(2e-4, "position step, in units of the scene extent (decays x0.01 to the end)")
+    lr_means: float = _f(2e-4, "position step, in units of the scene extent (decays exponentially to "
+                                "trainer.MEANS_LR_END of it by the last step)")
     lr_quats: float = _f(2e-3, "rotation (quaternion) step")
     lr_scales: float = _f(5e-3, "log-scale step")
     lr_opacity: float = _f(5e-2, "opacity-logit step")

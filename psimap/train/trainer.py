@@ -24,6 +24,31 @@ from psimap.train.density import GradStats, accumulate, densify_and_prune, quat_
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logit", "color_logit")
 
+# Fewest surfels an initialisation or a budget gives, however small the observed area.
+MIN_SURFELS = 16
+# Initial opacity of every surfel (then learned): below 1, so surfels behind an overlapping one
+# still get some blending weight, and gradients, from the first step.
+INIT_OPACITY = 0.7
+# Depth pixels the target spacing's median depth is taken over: every 7th valid pixel is plenty
+# for a median and keeps the concatenation small.
+SPACING_DEPTH_STEP = 7
+# About this many back-projected points from the whole sequence feed the prior and the init (the
+# SOGMM fit's time grows with the point count; point_stride picks the pixel step).
+PRIOR_POINTS = 400_000
+# Scene extent (sets the position learning rate and the prune size): the 1st-99th percentile box of
+# every 4th pixel of ~20 frames spread over the sequence; percentiles ignore stray depth returns.
+EXTENT_FRAMES = 20
+EXTENT_PIXEL_STEP = 4
+EXTENT_PERCENTILE = 1
+# Depth error before / after training is measured on this many frames spread over the sequence.
+EVAL_FRAMES = 6
+# The position step decays exponentially to this fraction of lr_means (coarse moves first).
+MEANS_LR_END = 0.01
+# loss_end is the mean over the last 1/LOSS_END_PART of the steps (one step's loss is one frame's).
+LOSS_END_PART = 10
+# Weight of the newest step in the smoothed loss shown on the progress bar and in `history`.
+LOSS_EMA = 0.1
+
 
 @dataclass
 class TrainFrame(View):
@@ -143,14 +168,14 @@ def backprojected(frames, stride: int):
 
 def target_spacing(frames, pixels: float) -> float:
     """`pixels` pixel footprints at the median observed depth (what the views can resolve), metres."""
-    med = float(np.median(np.concatenate([fr.depth[fr.valid].numpy()[::7] for fr in frames])))
+    med = float(np.median(np.concatenate([fr.depth[fr.valid].numpy()[::SPACING_DEPTH_STEP] for fr in frames])))
     focal = float(np.median([0.5 * (fr.K[0, 0] + fr.K[1, 1]) for fr in frames]))
     return pixels * med / focal
 
 
 def point_stride(frames) -> int:
-    """Pixel step that back-projects about 400k points from the whole sequence (prior and init)."""
-    return max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+    """Pixel step that back-projects about PRIOR_POINTS points from the whole sequence (prior and init)."""
+    return max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / PRIOR_POINTS))))
 
 
 def prior_points(frames, cfg: TrainConfig, log=print):
@@ -230,7 +255,7 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
     sogmm = fit_sogmm(pts4, noise=noise)
     side = sogmm.extents()
     area = float((side[:, 0] * side[:, 1]).sum())
-    n_init = max(16, int(round(area / spacing**2)))
+    n_init = max(MIN_SURFELS, int(round(area / spacing**2)))
     means, quats, scales, _ = sample_surfels(sogmm, n_init, seed=cfg.seed)
     log(f"SOGMM prior: K = {sogmm.K} components from {len(pts4)} points, residual "
         f"{sogmm.fit_stats.get('residual_mean', float('nan')) * 1000:.1f} mm (budget "
@@ -240,7 +265,7 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
     p, c = backprojected(frames, stride)
     _, nn = cKDTree(p).query(means, k=1)
     colors = c[nn]
-    params = make_params(means, quats, scales, np.full(len(means), 0.7), colors)
+    params = make_params(means, quats, scales, np.full(len(means), INIT_OPACITY), colors)
     return params, SOGMMIndex(sogmm), {"sogmm_K": sogmm.K, "area": area, "n_init": len(means)}
 
 
@@ -261,7 +286,7 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
     q = rng.normal(size=(len(means), 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     log(f"baseline init: {len(means)} surfels from observed points (no prior)")
-    params = make_params(means, q, np.stack([s, s], 1), np.full(len(means), 0.7), np.clip(colors, 0, 1))
+    params = make_params(means, q, np.stack([s, s], 1), np.full(len(means), INIT_OPACITY), np.clip(colors, 0, 1))
     return params, None, {"sogmm_K": 0, "area": float(len(means) * spacing**2), "n_init": len(means)}
 
 
@@ -405,8 +430,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
         seq, data_path = data, str(getattr(data, "root", ""))
     frames, low, skipped = prepare_frames(seq, cfg, log)
     spacing = target_spacing(frames, cfg.spacing_pixels)
-    p_all, _ = backprojected(frames[:: max(1, len(frames) // 20)], 4)
-    extent = float(np.linalg.norm(np.percentile(p_all, 99, 0) - np.percentile(p_all, 1, 0)))
+    p_all, _ = backprojected(frames[:: max(1, len(frames) // EXTENT_FRAMES)], EXTENT_PIXEL_STEP)
+    extent = float(np.linalg.norm(np.percentile(p_all, 100 - EXTENT_PERCENTILE, 0)
+                                  - np.percentile(p_all, EXTENT_PERCENTILE, 0)))
 
     index = None
     steps_before = 0
@@ -429,9 +455,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
         params, index, info = init_from_prior(frames, cfg, spacing, log)
     else:
         params, index, info = init_from_points(frames, cfg, spacing, log)
-    budget = max(int(cfg.budget_factor * info["n_init"]), 16)
+    budget = max(int(cfg.budget_factor * info["n_init"]), MIN_SURFELS)
 
-    eval_frames = frames[:: max(1, len(frames) // 6)][:6]
+    eval_frames = frames[:: max(1, len(frames) // EVAL_FRAMES)][:EVAL_FRAMES]
     depth_err_start = depth_error(params, eval_frames)
     optimizer, lr_means0 = make_optimizer(params, cfg, extent)
     grad_stats = GradStats.zeros(params["means"].shape[0])
@@ -441,7 +467,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
     dens_from, dens_until = int(cfg.densify_from * iters), int(cfg.densify_until * iters)
     ema, first_loss = {}, None
     guard = NonFiniteGuard()
-    recent, window = [], max(1, iters // 10)      # final loss = mean of the last 10 % of steps
+    recent, window = [], max(1, iters // LOSS_END_PART)
     history = []
     dens_log = []
     bar = tqdm(total=iters, desc="train", disable=not progress, dynamic_ncols=True)
@@ -467,8 +493,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if step < dens_until:
             accumulate(grad_stats, params["means"].grad, params["means"].detach(), fr.viewmat, fr.K,
                        fr.width, fr.height)
-        # position step decays exponentially to 1 % (coarse moves first, then refinement)
-        optimizer.param_groups[0]["lr"] = lr_means0 * 0.01 ** (step / max(iters - 1, 1))
+        # position step decays exponentially (coarse moves first, then refinement)
+        optimizer.param_groups[0]["lr"] = lr_means0 * MEANS_LR_END ** (step / max(iters - 1, 1))
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         vals = {k: float(v.detach()) for k, v in terms.items()}
@@ -476,7 +502,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if first_loss is None:
             first_loss = dict(vals)
         for k, v in vals.items():
-            ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
+            ema[k] = v if k not in ema else (1 - LOSS_EMA) * ema[k] + LOSS_EMA * v
         recent.append(vals)
         if len(recent) > window:
             recent.pop(0)
