@@ -29,7 +29,8 @@ def duplicate_queries(masks: torch.Tensor, threshold: float,
     """Queries to drop as duplicates: [Q] bool.
 
     Smallest masks first: a query is a duplicate when IoM with a larger, still-kept query exceeds
-    `threshold` (PanopticConfig.iom_threshold); the larger one is kept. Empty masks are duplicates of nothing (handled as useless).
+    `threshold` (PanopticConfig.iom_threshold); the larger one is kept. Empty masks are duplicates
+    of nothing (handled as useless).
     distinct [Q, Q] bool (optional): pairs known to be different objects (e.g. both matched to
     different 2D masks of one frame, repeatedly) are never duplicates of each other: a bottle's
     query lies inside the Gaussian of the shelf it stands on, so its 3D mask is inside the shelf's.

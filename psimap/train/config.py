@@ -89,8 +89,8 @@ class TrainConfig:
     # ---- panoptic field (paper §4), trained jointly with geometry after densification ------------
     panoptic: bool = _f(True, "train the panoptic field when the frames carry semantic / instance "
                               "pseudo-labels")
-    panoptic_iters: int = _f(400, "joint steps (geometry + panoptic losses) after the geometry "
-                                  "schedule, on the frozen surfel set")
+    panoptic_iters: int = _f(400, "panoptic-field steps after the geometry schedule, on its frozen "
+                                  "surfel set (geometry keeps training only with panoptic_geometry)")
     lambda_ins: float = _f(PanopticConfig.w_ins, "lambda_3: L_ins, Dice + BCE of Hungarian-matched "
                                                  "query masks")
     lambda_sem: float = _f(PanopticConfig.w_sem, "lambda_4: L_sem, cross-entropy of the rendered "
