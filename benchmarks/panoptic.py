@@ -5,6 +5,7 @@ Synthetic scenes (`psimap.data.synthetic.generate`) at pseudo-label noise 0 %, 1
 the ground truth: surfels from `scene_from_meshes` on gt/objects plus the stuff faces of
 gt/mesh.ply, so the panoptic part is measured alone. On the same frames, in the same run:
 - psimap: `fit_panoptic` (queries, Hungarian supervision, query adjustment) -> hard surfel labels;
+  the same loop (`psimap.panoptic.fit.train_field`) that `psimap train` runs on trained geometry;
 - baseline: `baseline_panoptic` (per-frame masks lifted to voxels, merged greedily by IoM);
 - oracle: the GT surfel labels rendered the same way (the ceiling of this evaluation protocol).
 Labels of every frame are rendered with `render_labels` and scored against the GT label maps:
@@ -22,7 +23,7 @@ import argparse
 import sys
 import tempfile
 import time
-from dataclasses import asdict, fields
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -99,15 +100,12 @@ def score(scene, frames, things, topk=None, supersample=None):
 
 
 def run_psimap(scene, frames, iters, cfg, seed):
-    import torch
-
-    from psimap.panoptic.field import fit_panoptic
+    from psimap.panoptic.fit import fit_panoptic
 
     surf = {k: scene.surfels[k].float() for k in ("means", "quats", "scales", "opacities")}
     t0, c0 = time.perf_counter(), time.process_time()
     state = fit_panoptic(surf, frames, scene.classes, iters=iters, cfg=cfg, seed=seed, backend="auto")
     dt, cpu = time.perf_counter() - t0, time.process_time() - c0
-    torch.set_num_threads(torch.get_num_threads())
     s = state["surfels"]
     return (with_labels(scene, s["instance_id"], s["semantic_id"]), dt, cpu,
             int(state["queries"]["feature"].shape[0]))
@@ -175,11 +173,9 @@ def headlines(rows, mean_rows, topk_rows) -> list[tuple[str, str]]:
 
 
 def main() -> None:
-    import torch
-
     from psimap.data import load
     from psimap.data.synthetic import generate
-    from psimap.panoptic.field import PanopticConfig
+    from psimap.panoptic.config import PanopticConfig
     from psimap.panoptic.labels import DEFAULT_SUPERSAMPLE
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -203,13 +199,15 @@ def main() -> None:
         args.seeds, args.frames, args.iters, args.noises = args.seeds[:1], 16, 60, [0.15]
         width, height = 96, 72
     types = {f.name: f.type for f in fields(PanopticConfig)}
+    parse = {"int": int, "float": float, "str": str, "bool": lambda v: v.lower() in ("1", "true", "yes")}
     over = {}
     for kv in args.cfg:
         k, v = kv.split("=", 1)
-        over[k] = {"int": int, "float": float, "str": str}.get(types[k], float)(v)
+        if k not in types:
+            ap.error(f"--cfg {kv}: PanopticConfig has no field {k!r}")
+        over[k] = parse[types[k]](v)
     cfg = PanopticConfig(**over)
     load0 = _load()
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     if args.oracle_sweep:
         oracle_sweep(args.seeds[0], args.frames, width, height, args.coarsen)
         return

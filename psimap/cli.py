@@ -76,19 +76,7 @@ def main(argv=None) -> int:
 
     try:
         module, func = target.split(":")
-        try:
-            fn = getattr(importlib.import_module(module), func)
-        except ModuleNotFoundError as e:
-            # Only a missing psimap stage means "not implemented"; a missing dependency is an error.
-            if debug or not (e.name and module.startswith(e.name) and e.name.startswith("psimap")):
-                raise
-            print(f"psimap {args.command}: not implemented yet", file=sys.stderr)
-            return 3
-        except AttributeError:
-            if debug:
-                raise
-            print(f"psimap {args.command}: not implemented yet", file=sys.stderr)
-            return 3
+        fn = getattr(importlib.import_module(module), func)
         rc = fn(opts)
         return int(rc or 0)
     except PsimapError as e:

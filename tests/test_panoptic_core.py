@@ -136,7 +136,8 @@ def test_uncovered_mask_spawns_a_query_and_covered_one_does_not():
     from types import SimpleNamespace
 
     from psimap.data.frames import ClassInfo
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     h, w = 12, 16
     K = torch.tensor([[10.0, 0, 8], [0, 10.0, 6], [0, 0, 1]])
@@ -188,7 +189,8 @@ def test_seen_counts_only_frames_where_the_query_owns_pixels():
     from types import SimpleNamespace
 
     from psimap.data.frames import ClassInfo
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     h, w = 12, 16
     K = torch.tensor([[10.0, 0, 8], [0, 10.0, 6], [0, 0, 1]])
@@ -219,7 +221,8 @@ def test_class_term_of_the_matching_cost(w_class, winner):
     from types import SimpleNamespace
 
     from psimap.data.frames import ClassInfo
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     h, w = 12, 16
     K = torch.tensor([[10.0, 0, 8], [0, 10.0, 6], [0, 0, 1]])
@@ -254,7 +257,8 @@ def test_queries_matched_apart_are_not_duplicates():
 
 
 def test_field_counts_frames_where_two_queries_match_different_masks():
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     # two surfels at x = -1 and x = +1, two queries centred on them; a frame whose two masks are
     # the two surfels' pixels matches both queries: comatched counts it, and once it reaches
@@ -342,7 +346,8 @@ def test_fuse_classes_gives_border_surfels_to_the_instance_their_semantics_name(
 
 
 def test_spawned_query_starts_from_its_surfels_features_and_wins_them():
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     # a shelf's query (feature 3 e0, wide Gaussian at the origin) and a bottle at x = 0.3 m whose
     # surfels were trained toward the shelf's feature (no bottle query existed yet)
@@ -374,7 +379,8 @@ def test_spawned_query_starts_from_its_surfels_features_and_wins_them():
 def test_instance_class_comes_from_the_masks_its_query_matched(query_class, mug_class):
     from types import SimpleNamespace
 
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     # two surfels, one pixel each: a table (class 1) and a mug (class 2) whose surfel semantics
     # were dragged to "table" (merged masks); the mug's query is matched to "mug" masks
@@ -405,7 +411,8 @@ def test_instance_class_comes_from_the_masks_its_query_matched(query_class, mug_
 @pytest.mark.parametrize("trim", [True, False])
 def test_query_gaussian_ignores_mask_pixels_that_bleed_onto_the_wall_behind(trim):
     from psimap.data.frames import ClassInfo, Frame
-    from psimap.panoptic.field import PanopticConfig, backproject, init_queries
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import backproject, init_queries
 
     # a 6x6 px box 1.5 m away in front of a wall at 3 m; the noisy 2D mask is the box dilated by
     # 1 px, so 28 of its 64 pixels see the wall
@@ -479,7 +486,8 @@ def test_second_piece_of_a_split_mask_spawns_no_query(split, piece_class, spawne
     from types import SimpleNamespace
 
     from psimap.data.frames import ClassInfo
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     # one query draws a box; the 2D model split the box's mask in two (ids 5 and 6). The second
     # piece is the same object (no new query) unless its class differs (a bottle on the box)
@@ -510,7 +518,8 @@ def test_second_piece_of_a_split_mask_spawns_no_query(split, piece_class, spawne
 
 def _two_query_field(**cfg):
     """Two converged queries on two 20-surfel clusters at (-1, -1, -1) and (1, 1, 1), 120 steps old."""
-    from psimap.panoptic.field import PanopticConfig, PanopticField
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
 
     means = torch.cat([torch.full((20, 3), -1.0), torch.full((20, 3), 1.0)]) + 0.01 * torch.randn(40, 3)
     feat = torch.tensor([[3.0, 0, 0, 0], [0, 3.0, 0, 0]])

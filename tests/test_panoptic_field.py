@@ -6,7 +6,8 @@ import torch
 from psimap.camera import orbit
 from psimap.data.frames import ClassInfo, Frame
 from psimap.metrics.panoptic import panoptic_metrics
-from psimap.panoptic.field import PanopticConfig, fit_panoptic
+from psimap.panoptic.config import PanopticConfig
+from psimap.panoptic.fit import fit_panoptic
 from psimap.render import rasterize
 
 CLASSES = [ClassInfo(1, "floor", False), ClassInfo(2, "box", True)]
@@ -112,3 +113,76 @@ def test_fit_is_deterministic_whatever_the_global_rng_and_thread_count():
     assert torch.equal(a["surfels"]["semantic"], b["surfels"]["semantic"])
     assert torch.equal(a["surfels"]["instance_id"], b["surfels"]["instance_id"])
     assert torch.equal(a["queries"]["feature"], b["queries"]["feature"])
+
+
+def _train_two_boxes(iters, surfels=None, joint=None, seed=2):
+    """train_field on the two-box scene (6 views), by default on its fixed surfels: (state, metrics)."""
+    from psimap.panoptic.fit import train_field, view_of
+
+    s, frames, _ = _two_box_scene(n_frames=6)
+    geometry = (s["means"], s["quats"], s["scales"], s["opacities"], torch.zeros_like(s["means"]))
+    cfg = PanopticConfig(init_frames=3, adjust_start=10, adjust_every=10, pixels_per_step=2048)
+    return train_field([view_of(f) for f in frames], CLASSES, cfg, surfels or (lambda: geometry), iters=iters,
+                       scene_scale=1.2, rng=np.random.default_rng(seed),
+                       generator=torch.Generator().manual_seed(seed), joint=joint)
+
+
+def test_nan_loss_or_gradient_steps_are_skipped_and_a_persistent_one_raises(monkeypatch):
+    """The one loop's NaN policy (psimap.nonfinite): a step with a NaN loss term, or with finite
+    losses but a NaN gradient, changes nothing and is counted; ten in a row stop the fit with one
+    clear error naming the term and the frame."""
+    from psimap.nonfinite import Diverged
+    from psimap.panoptic.field import PanopticField
+
+    real = PanopticField.losses
+    calls = {"n": 0}
+
+    def flaky(self, *a, **k):
+        calls["n"] += 1
+        l_ins, l_sem, info = real(self, *a, **k)
+        if calls["n"] <= 2:                     # NaN loss
+            return l_ins * float("nan"), l_sem, info
+        if calls["n"] <= 4:                     # finite loss (0), NaN gradient: d sqrt(0 x) / dx = 0 * inf
+            return l_ins + torch.sqrt(self.instance[0, 0] * 0.0), l_sem, info
+        return l_ins, l_sem, info
+
+    monkeypatch.setattr(PanopticField, "losses", flaky)
+    state, metrics = _train_two_boxes(iters=12)
+    assert metrics["panoptic_skipped_steps"] == 4
+    assert all(torch.isfinite(v).all() for v in state["surfels"].values() if v.is_floating_point())
+    assert torch.isfinite(state["queries"]["feature"]).all()
+
+    def always_nan(self, *a, **k):
+        l_ins, l_sem, info = real(self, *a, **k)
+        return l_ins, l_sem * float("nan"), info
+
+    monkeypatch.setattr(PanopticField, "losses", always_nan)
+    with pytest.raises(Diverged, match=r"panoptic training diverged at step 9 \(frame f\d\): "
+                                       r"loss term 'sem' was NaN/inf for 10 consecutive steps"):
+        _train_two_boxes(iters=30)
+
+
+def test_fixed_geometry_visibility_cache_changes_nothing():
+    """With fixed geometry the loop computes each view's visible surfels once; re-reading the
+    geometry every step (as when it is trained jointly, here with a zero learning rate and no
+    geometry loss) gives the bit-identical field."""
+    from psimap.panoptic.fit import JointGeometry
+
+    cached, m1 = _train_two_boxes(iters=12)
+    s, _, _ = _two_box_scene(n_frames=6)
+    params = {k: s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities")}
+    reads = {"n": 0}
+
+    def surfels():
+        reads["n"] += 1
+        return (params["means"], params["quats"], params["scales"], params["opacities"],
+                torch.zeros_like(params["means"]))
+
+    joint = JointGeometry(params=params, terms=lambda view: {},
+                          optimizer=torch.optim.SGD(list(params.values()), lr=0.0))
+    moving, m2 = _train_two_boxes(iters=12, surfels=surfels, joint=joint)
+    assert reads["n"] == 1 + 12
+    assert m1["queries_final"] == m2["queries_final"] and m1["queries_removed"] == m2["queries_removed"]
+    for k in ("semantic", "instance", "instance_id", "semantic_id"):
+        assert torch.equal(cached["surfels"][k], moving["surfels"][k]), k
+    assert torch.equal(cached["queries"]["feature"], moving["queries"]["feature"])

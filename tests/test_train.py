@@ -7,11 +7,12 @@ import pytest
 import torch
 
 from psimap import PsimapError
+from psimap.camera import look_at
 from psimap.data.frames import ClassInfo, Frame, FrameSequence
+from psimap.nonfinite import Diverged
 from psimap.train import losses as L
 from psimap.train.config import TrainConfig
-from psimap.train.trainer import Diverged, train
-from psimap.camera import look_at
+from psimap.train.trainer import train
 
 W, H = 64, 48
 K = np.array([[52.0, 0, 31.5], [0, 52.0, 23.5], [0, 0, 1]])
@@ -181,7 +182,7 @@ def test_nan_guard(scene_frames, monkeypatch):
 
 def test_density_control_clone_split_prune_budget():
     from psimap.train.density import GradStats, densify_and_prune
-    from psimap.train.trainer import PARAM_NAMES, _optimizer, make_params
+    from psimap.train.trainer import PARAM_NAMES, make_optimizer, make_params
 
     n = 6
     means = np.zeros((n, 3)); means[:, 0] = np.arange(n)
@@ -189,7 +190,7 @@ def test_density_control_clone_split_prune_budget():
     opac = np.full(n, 0.8); opac[2] = 0.01                    # surfel 2 is transparent
     q = np.tile([1.0, 0, 0, 0], (n, 1))
     params = make_params(means, q, scales, opac, np.full((n, 3), 0.5))
-    opt, _ = _optimizer(params, TrainConfig(), 1.0)
+    opt, _ = make_optimizer(params, TrainConfig(), 1.0)
     sum((p**2).sum() for p in params.values()).backward()
     opt.step()
     parent_scale = params["log_scales"].exp()[1].detach().clone()
@@ -318,7 +319,7 @@ def test_density_control_densifies_where_the_map_is_missing():
     In pixel units the same threshold cloned only a few (it was W / 2 = 32 times stricter)."""
     from psimap.camera import look_at
     from psimap.train.density import GradStats, accumulate, densify_and_prune
-    from psimap.train.trainer import _optimizer, _to_train_frame, loss_terms, make_params, render
+    from psimap.train.trainer import loss_terms, make_optimizer, make_params, render, to_train_frame
 
     means, q, colors = _plane_grid()
     n = len(means)
@@ -328,15 +329,15 @@ def test_density_control_densifies_where_the_map_is_missing():
     views = []
     for eye in ([0, 0, 2.0], [0.3, -0.2, 1.9], [-0.2, 0.3, 2.1]):
         c2w = look_at(np.array(eye), (0.0, 0.0, 0.0))
-        blank = _to_train_frame("v", np.zeros((H, W, 3)), np.zeros((H, W)), K, c2w)
+        blank = to_train_frame("v", np.zeros((H, W, 3)), np.zeros((H, W)), K, c2w)
         with torch.no_grad():
             out = render(full, blank)
-        views.append(_to_train_frame("v", out.rgb.numpy(), np.where(out.alpha.numpy() > 0.5,
-                                                                   out.depth.numpy(), 0), K, c2w))
+        views.append(to_train_frame("v", out.rgb.numpy(), np.where(out.alpha.numpy() > 0.5,
+                                                                  out.depth.numpy(), 0), K, c2w))
     cfg_ = TrainConfig(use_prior=False)
     m = int(keep.sum())
     params = make_params(means[keep], q[keep], np.full((m, 2), 0.05), np.full(m, 0.9), colors[keep])
-    opt, _ = _optimizer(params, cfg_, 1.0)
+    opt, _ = make_optimizer(params, cfg_, 1.0)
     stats = GradStats.zeros(m)
     for fr in views:
         terms, _ = loss_terms(params, fr, cfg_, None, 0.08, False)
@@ -360,7 +361,7 @@ def test_density_control_densifies_where_the_map_is_missing():
 def test_median_depth_loss_moves_the_front_surfel():
     """Two layers: the front surfel (the median, what the mesh fuses) sits 10 cm before the target;
     the median-depth term pulls that front surfel, not the one behind it, to the target."""
-    from psimap.train.trainer import _to_train_frame, loss_terms, make_params
+    from psimap.train.trainer import loss_terms, make_params, to_train_frame
 
     means = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.2]])         # camera looks down from z = 2
     params = make_params(means, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 2), 2.0),
@@ -368,7 +369,7 @@ def test_median_depth_loss_moves_the_front_surfel():
     from psimap.camera import look_at
 
     c2w = look_at(np.array([0.0, 0.0, 2.0]), (0.0, 0.0, 0.0))
-    fr = _to_train_frame("v", np.full((H, W, 3), 0.5), np.full((H, W), 2.1), K, c2w)
+    fr = to_train_frame("v", np.full((H, W, 3), 0.5), np.full((H, W), 2.1), K, c2w)
     cfg_ = TrainConfig(use_prior=False, lambda_rgb=0.0, lambda_iso=0.0, lambda_depth=0.0,
                        lambda_depth_median=1.0)
     terms, out = loss_terms(params, fr, cfg_, None, 0.1, False)

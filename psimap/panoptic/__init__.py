@@ -6,9 +6,9 @@ stays cheap; torch loads only when a function runs.
 from __future__ import annotations
 
 _EXPORTS = {
-    "PanopticConfig": "psimap.panoptic.field",
+    "PanopticConfig": "psimap.panoptic.config",
     "PanopticField": "psimap.panoptic.field",
-    "fit_panoptic": "psimap.panoptic.field",
+    "fit_panoptic": "psimap.panoptic.fit",
     "render_labels": "psimap.panoptic.labels",
     "write_labels": "psimap.panoptic.labels",
     "instance_classes": "psimap.panoptic.labels",

@@ -24,12 +24,13 @@ def iom_matrix(masks: torch.Tensor) -> torch.Tensor:
     return inter / size.clamp_min(1.0).unsqueeze(1) * (size > 0).float().unsqueeze(1)
 
 
-def duplicate_queries(masks: torch.Tensor, threshold: float = 0.6,
+def duplicate_queries(masks: torch.Tensor, threshold: float,
                       distinct: torch.Tensor | None = None) -> torch.Tensor:
     """Queries to drop as duplicates: [Q] bool.
 
     Smallest masks first: a query is a duplicate when IoM with a larger, still-kept query exceeds
-    `threshold`; the larger one is kept. Empty masks are duplicates of nothing (handled as useless).
+    `threshold` (PanopticConfig.iom_threshold); the larger one is kept. Empty masks are duplicates
+    of nothing (handled as useless).
     distinct [Q, Q] bool (optional): pairs known to be different objects (e.g. both matched to
     different 2D masks of one frame, repeatedly) are never duplicates of each other: a bottle's
     query lies inside the Gaussian of the shelf it stands on, so its 3D mask is inside the shelf's.
@@ -53,13 +54,14 @@ def duplicate_queries(masks: torch.Tensor, threshold: float = 0.6,
     return drop
 
 
-def useless_queries(matched: torch.Tensor, visible: torch.Tensor, min_rate: float = 0.1,
+def useless_queries(matched: torch.Tensor, visible: torch.Tensor, min_rate: float,
                     min_visible: int = 3) -> torch.Tensor:
     """Queries to drop as useless: [Q] bool.
 
-    matched [Q]: frames in which the query was matched to a 2D mask; visible [Q]: frames in which its
-    centre was in view. Queries seen at least `min_visible` times whose match rate is below
-    `min_rate` are useless; so are queries never matched although seen.
+    matched [Q]: frames in which the query was matched to a 2D mask; visible [Q]: frames in which it
+    was seen (owned a mask-sized region). Queries seen at least `min_visible` times whose match rate
+    is below `min_rate` (PanopticConfig.min_match_rate) are useless; so are queries never matched
+    although seen.
     """
     matched = matched.float()
     visible = visible.float()

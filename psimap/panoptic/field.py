@@ -2,79 +2,24 @@
 per-frame Hungarian supervision from noisy 2D masks, and dynamic query adjustment.
 
 Rendering is injected: `losses(render, ...)` calls `render(idx [V], features [V, C], topk)` which
-must return a RenderOutput of the visible surfels `idx` (the trainer renders them with its current,
+must return a RenderOutput of the visible surfels `idx` (the caller renders them with its current,
 possibly learnable, geometry, so the panoptic losses also reach geometry through the Top-K weights).
-`fit_panoptic` trains the field alone on fixed geometry (a scene with trained or ground-truth surfels).
+The training loop that drives the field is `psimap.panoptic.fit`.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from psimap import PsimapError
 from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, useless_queries
+from psimap.panoptic.config import PanopticConfig
 from psimap.panoptic.matching import hungarian_match, mask_windows, masks_from_ids, matched_mask_loss
 from psimap.panoptic.queries import InstanceQueries, init_from_points
 from psimap.transforms import pixels_to_camera_torch, transform_points
-
-
-@dataclass
-class PanopticConfig:
-    feat_dim: int = 16              # instance feature size per surfel and query
-    topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
-    temperature: float = 0.1        # softmax temperature over query affinities
-    init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
-    # 2D masks smaller than this fraction of the image are ignored (5 px at 160x120: bottles and
-    # balls there cover a median 7-20 px; the former 0.002 = 38 px ignored most of their masks)
-    min_mask_fraction: float = 0.0003
-    # pixels sampled per frame for matching and losses (all of a 160x120 frame: at 4096 a 12 px
-    # mask kept ~3 pixels and its matching cost was noise)
-    pixels_per_step: int = 20000
-    w_ins: float = 1.0              # lambda_3
-    w_sem: float = 1.0              # lambda_4
-    lr_surfel: float = 0.02         # Adam lr of per-surfel features
-    lr_query: float = 0.01          # Adam lr of queries and attention weights
-    reject_dice: float = 0.95       # matches with Dice cost above this are not supervised
-    # class term of the matching cost (0 = Dice + BCE only). Off by default: at 15 % noise (160x120,
-    # seeds 0 / 1) weight 1 gave PQ 0.647 / 0.757 against 0.675 / 0.755 without it (RESULTS.md)
-    w_class: float = 0.0
-    adjust_start: int = 60          # first step of dynamic query adjustment
-    adjust_every: int = 60          # then every this many steps
-    # useless: matched in fewer of the frames that see it. Real objects' queries were matched in
-    # >= 0.56 of them at 15 % noise (seeds 0-2); at 0.1 a query on a cabinet's border, matched in
-    # 8 of 53 frames, survived as a false instance (seed 2: PQ 0.861 -> 0.921 at 0.3)
-    min_match_rate: float = 0.3
-    iom_threshold: float = 0.6      # duplicate: IoM with a larger query above this
-    mask_affinity: float = 0.5      # 3D mask of a query: surfels with A(q, g) above this
-    # 3D mask for the IoM test: "affinity" = A > mask_affinity; "share" = softmax share > mask_share
-    # ("share" collapsed two unconverged box queries into one in tests/test_panoptic_field.py)
-    mask_mode: str = "affinity"
-    mask_share: float = 0.3
-    min_instance_surfels: int = 10  # instances with fewer surfels are dropped at export
-    # duplicate rule: two queries matched to two different 2D masks of one frame in at least this
-    # many frames are different objects, whatever their 3D IoM (0 = off)
-    distinct_frames: int = 2
-    # final cleanup: a thing surfel takes the majority instance of its k nearest thing surfels
-    # (argmax noise on object borders); 0 = off
-    smooth_k: int = 8
-    # export: a thing surfel's instance maximises p(q | g) * p(class of q | g), the instance and the
-    # semantic heads combined, instead of p(q | g) alone (a mug's border surfels won by the table's
-    # query but whose semantics say "mug" go to the mug)
-    class_fusion: bool = True
-    # an instance's class = the majority class of the 2D masks its query was matched to (a merged
-    # mask goes to the larger object's query, so its class does not leak onto the smaller object,
-    # whose surfels' own semantics it does drag: a mug's pixels were 49 % "table" at 15 % noise);
-    # False = majority of the instance's surfels' semantic argmax
-    query_class: bool = True
-    spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
-    spawn_feature: bool = True      # a spawned query starts from its mask's surfels' features
-    spawn_split: bool = True        # no spawn for a mask drawn mostly by a query busy with a same-class mask
-    max_spawn_per_step: int = 2
-    max_queries: int = 256
 
 
 def class_tables(classes) -> tuple[torch.Tensor, torch.Tensor]:
@@ -197,8 +142,7 @@ class PanopticField(nn.Module):
         self.steps = 0
         # (point set [P, 3], feature [F] or None) of masks that no query covers
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None]] = []
-        self.last_drops: dict[str, int] = {}
-        self.drop_log: list[tuple[int, dict]] = []    # (step, {rule: queries dropped}) per adjustment
+        self.last_drops: dict[str, int] = {}          # {rule: queries dropped} at the last adjustment
         self._gen = generator
         self._make_optimizers()
 
@@ -312,18 +256,6 @@ class PanopticField(nn.Module):
             return None
         scale = max(1.0, float(self.queries.feature.detach().norm(dim=-1).max())) if self.queries.count else 1.0
         return f / norm * scale
-
-    def remap(self, idx: torch.Tensor) -> None:
-        """Follow the trainer's densification: new surfel j takes old surfel idx[j]'s parameters."""
-        state = {k: self.opt_surfel.state.get(p, {}) for k, p in (("s", self.semantic), ("i", self.instance))}
-        self.semantic = nn.Parameter(self.semantic.detach()[idx].clone())
-        self.instance = nn.Parameter(self.instance.detach()[idx].clone())
-        old_s, old_i = state["s"], state["i"]
-        self.opt_surfel = torch.optim.Adam([self.semantic, self.instance], lr=self.cfg.lr_surfel)
-        for p, st in ((self.semantic, old_s), (self.instance, old_i)):
-            if st:
-                self.opt_surfel.state[p] = {"step": st["step"], "exp_avg": st["exp_avg"][idx].clone(),
-                                            "exp_avg_sq": st["exp_avg_sq"][idx].clone()}
 
     # ---- losses -------------------------------------------------------------------------------
     def losses(self, render, means: torch.Tensor, visible_idx: torch.Tensor, instance: torch.Tensor | None,
@@ -446,13 +378,7 @@ class PanopticField(nn.Module):
         q = self.queries.count
         if q <= 1:
             return 0
-        if self.cfg.mask_mode == "share":
-            # ownership after the softmax competition: two queries on one object split it (both
-            # masks hold it, IoM high), while a small object's own query wins it from a large
-            # enclosing one (no overlap), so small objects are not pruned as duplicates
-            masks = torch.softmax(self.affinity_all(means) / self.queries.temperature, -1) > self.cfg.mask_share
-        else:
-            masks = self.affinity_all(means) > self.cfg.mask_affinity               # [N, Q]
+        masks = self.affinity_all(means) > self.cfg.mask_affinity                   # [N, Q]
         old_enough = (self.steps - self.born) >= self.cfg.adjust_every              # grace for new ones
         distinct = (self.comatched >= self.cfg.distinct_frames) if self.cfg.distinct_frames > 0 else None
         dup = duplicate_queries(masks, self.cfg.iom_threshold, distinct) & old_enough
@@ -469,11 +395,10 @@ class PanopticField(nn.Module):
                                       self.matched) & old_enough
         empty = (masks.sum(0) == 0) & old_enough                                     # covers nothing
         drop = dup | useless | empty | fragment
-        # which rule fired (a query may break several): read by the log and the benchmark
+        # which rule fired (a query may break several): read by the training log
         self.last_drops = {"duplicate": int(dup.sum()), "fragment": int((fragment & ~dup).sum()),
                            "useless": int((useless & ~dup & ~fragment).sum()),
                            "empty": int((empty & ~dup & ~useless & ~fragment).sum())}
-        self.drop_log.append((self.steps, dict(self.last_drops)))
         if bool(drop.all()):                                                         # keep the best one
             drop[int(torch.argmax(self.matched))] = False
         keep = ~drop
@@ -630,87 +555,3 @@ def smooth_instances(means: torch.Tensor, inst: torch.Tensor, thing: torch.Tenso
     new = np.where(change, uniq[best], inst[idx].numpy())
     out[idx] = torch.as_tensor(new, dtype=inst.dtype)
     return out
-
-
-def visible_surfels(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
-    """Indices [V] of surfels whose 3-sigma footprint touches the image (the frustum-local set)."""
-    from psimap.render.project import project_surfels
-
-    with torch.no_grad():
-        p = project_surfels(means, quats, scales, opacities, w2c.to(means.dtype), K.to(means.dtype),
-                            width, height, near, far)
-        box = p.box_precise
-        hit = p.valid & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
-    return torch.nonzero(hit).flatten()
-
-
-def fit_panoptic(surfels: dict, frames, classes, *, iters: int = 300, cfg: PanopticConfig | None = None,
-                 seed: int = 0, backend: str = "auto", progress: bool = False, log=None) -> dict:
-    """Train the panoptic field on fixed geometry; returns `PanopticField.state_for_checkpoint`.
-
-    surfels: means [N,3], quats [N,4], scales [N,2], opacities [N] (tensors); frames: a sequence of
-    Frame with per-frame pseudo-labels. Frames with no labels are skipped.
-    """
-    threads = torch.get_num_threads()
-    # Per-step tensors are small: torch's intra-op threads only spin-wait (measured: 40 steps took
-    # 3 s on one thread, 66 s on two on a busy 2-core machine).
-    torch.set_num_threads(1)
-    try:
-        return _fit_panoptic(surfels, frames, classes, iters=iters, cfg=cfg, seed=seed, backend=backend,
-                             progress=progress, log=log)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _fit_panoptic(surfels, frames, classes, *, iters, cfg, seed, backend, progress, log) -> dict:
-    from tqdm import tqdm
-
-    from psimap.render import rasterize
-
-    cfg = cfg or PanopticConfig()
-    if not len(frames):
-        raise PsimapError("fit_panoptic: no frames")
-    g = torch.Generator().manual_seed(seed)
-    means = surfels["means"].float()
-    quats, scales, opac = surfels["quats"].float(), surfels["scales"].float(), surfels["opacities"].float()
-    colors = torch.zeros_like(means)
-    extent = float((means.max(0).values - means.min(0).values).norm()) if means.shape[0] else 1.0
-    queries = init_queries(frames, classes, cfg, scene_scale=extent, generator=g)
-    field = PanopticField(means.shape[0], classes, queries, cfg, generator=g)
-    labelled = [i for i in range(len(frames)) if frames[i].instance is not None or frames[i].semantic is not None]
-    if not labelled:
-        raise PsimapError("fit_panoptic: no frame has semantic or instance pseudo-labels")
-    order = torch.randint(len(labelled), (iters,), generator=g).tolist()
-    visible_cache: dict[int, torch.Tensor] = {}
-    bar = tqdm(order, desc="panoptic", disable=not progress)
-    for it, j in enumerate(bar):
-        fr = frames[labelled[j]]
-        K = torch.as_tensor(fr.K, dtype=torch.float32)
-        w2c = torch.as_tensor(np.linalg.inv(fr.c2w), dtype=torch.float32)
-        h, w = fr.height, fr.width
-        if labelled[j] not in visible_cache:          # geometry is fixed here: once per frame
-            visible_cache[labelled[j]] = visible_surfels(means, quats, scales, opac, w2c, K, w, h)
-        vis = visible_cache[labelled[j]]
-
-        def render(idx, feats, topk):
-            return rasterize(means[idx], quats[idx], scales[idx], opac[idx], colors[idx], w2c, K, w, h,
-                             features=feats, topk=topk, backend=backend)
-
-        inst = None if fr.instance is None else torch.as_tensor(np.asarray(fr.instance, dtype=np.int64))
-        sem = None if fr.semantic is None else torch.as_tensor(np.asarray(fr.semantic, dtype=np.int64))
-        field.zero_grad()
-        depth = torch.as_tensor(np.asarray(fr.depth, dtype=np.float32))
-        l_ins, l_sem, info = field.losses(render, means, vis, inst, sem, K, w2c, w, h, generator=g, depth=depth)
-        loss = l_ins + l_sem
-        if not torch.isfinite(loss):
-            raise PsimapError(f"panoptic training diverged at step {it}: L_ins={float(l_ins)}, L_sem={float(l_sem)}")
-        loss.backward()
-        field.step()
-        removed = field.maybe_adjust(means)
-        if progress:
-            bar.set_postfix(ins=f"{float(l_ins):.3f}", sem=f"{float(l_sem):.3f}", queries=field.queries.count)
-        if log is not None and (removed or it % 50 == 0):
-            drops = ", ".join(f"{v} {k}" for k, v in field.last_drops.items() if v) if removed else ""
-            log(f"step {it}: L_ins {float(l_ins):.4f} L_sem {float(l_sem):.4f} queries {field.queries.count}"
-                + (f" (-{removed}: {drops})" if removed else ""))
-    return field.state_for_checkpoint(means)

@@ -20,6 +20,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from psimap.panoptic.config import PanopticConfig
+
 
 @dataclass
 class Match:
@@ -86,7 +88,7 @@ def bce_cost(logit: torch.Tensor, target: torch.Tensor, window: torch.Tensor | N
 
 def hungarian_match(prob: torch.Tensor, target: torch.Tensor, *, class_cost: torch.Tensor | None = None,
                     w_dice: float = 1.0, w_bce: float = 1.0, w_class: float = 1.0,
-                    reject_dice: float = 0.95, window: torch.Tensor | None = None) -> Match:
+                    reject_dice: float = PanopticConfig.reject_dice, window: torch.Tensor | None = None) -> Match:
     """Match Q query masks to M target masks on Dice + BCE (+ class) cost.
 
     prob [Q, P]: rendered per-query probabilities on P sampled pixels (in [0, 1]);

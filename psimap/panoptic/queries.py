@@ -12,6 +12,8 @@ import math
 import torch
 import torch.nn as nn
 
+from psimap.panoptic.config import PanopticConfig
+
 
 def positional_encoding(x: torch.Tensor, n_freqs: int, scale: float) -> torch.Tensor:
     """psi(mu): sin/cos encoding of positions x [N, 3] (metres) -> [N, 6 * n_freqs].
@@ -31,7 +33,7 @@ class InstanceQueries(nn.Module):
     """
 
     def __init__(self, feature: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, *,
-                 temperature: float = 0.1, n_freqs: int = 4, scene_scale: float = 1.0,
+                 temperature: float = PanopticConfig.temperature, n_freqs: int = 4, scene_scale: float = 1.0,
                  attn_dim: int | None = None, generator: torch.Generator | None = None):
         super().__init__()
         q, f = feature.shape

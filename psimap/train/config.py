@@ -1,7 +1,17 @@
-"""Every training weight and schedule in one dataclass, with defaults and help text."""
+"""Every training weight and schedule in one dataclass, with defaults and help text.
+
+The panoptic field's own settings live in `psimap.panoptic.config.PanopticConfig`; the few that
+`psimap train` exposes (`PANOPTIC_FIELDS`) take their defaults from it.
+"""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
+
+from psimap.panoptic.config import PanopticConfig
+
+# TrainConfig field -> PanopticConfig field it sets (names kept: they are checkpoint config keys)
+PANOPTIC_FIELDS = {"panoptic_feat_dim": "feat_dim", "panoptic_topk": "topk",
+                   "lambda_ins": "w_ins", "lambda_sem": "w_sem"}
 
 
 def _f(default, help: str):
@@ -52,7 +62,8 @@ class TrainConfig:
                                "plain-2DGS baseline (points + kNN scales, no L_geo)")
 
     # ---- learning rates (positions scale with the scene extent) --------------------------------
-    lr_means: float = _f(2e-4, "position step, in units of the scene extent (decays x0.01 to the end)")
+    lr_means: float = _f(2e-4, "position step, in units of the scene extent (decays exponentially to "
+                                "trainer.MEANS_LR_END of it by the last step)")
     lr_quats: float = _f(2e-3, "rotation (quaternion) step")
     lr_scales: float = _f(5e-3, "log-scale step")
     lr_opacity: float = _f(5e-2, "opacity-logit step")
@@ -78,12 +89,15 @@ class TrainConfig:
     # ---- panoptic field (paper §4), trained jointly with geometry after densification ------------
     panoptic: bool = _f(True, "train the panoptic field when the frames carry semantic / instance "
                               "pseudo-labels")
-    panoptic_iters: int = _f(400, "joint steps (geometry + panoptic losses) after the geometry "
-                                  "schedule, on the frozen surfel set")
-    lambda_ins: float = _f(1.0, "lambda_3: L_ins, Dice + BCE of Hungarian-matched query masks")
-    lambda_sem: float = _f(1.0, "lambda_4: L_sem, cross-entropy of the rendered semantic logits")
-    panoptic_topk: int = _f(8, "Top-K hard selection: features blend over the K largest weights")
-    panoptic_feat_dim: int = _f(16, "instance feature size per surfel and query")
+    panoptic_iters: int = _f(400, "panoptic-field steps after the geometry schedule, on its frozen "
+                                  "surfel set (geometry keeps training only with panoptic_geometry)")
+    lambda_ins: float = _f(PanopticConfig.w_ins, "lambda_3: L_ins, Dice + BCE of Hungarian-matched "
+                                                 "query masks")
+    lambda_sem: float = _f(PanopticConfig.w_sem, "lambda_4: L_sem, cross-entropy of the rendered "
+                                                 "semantic logits")
+    panoptic_topk: int = _f(PanopticConfig.topk, "Top-K hard selection: features blend over the K "
+                                                 "largest weights")
+    panoptic_feat_dim: int = _f(PanopticConfig.feat_dim, "instance feature size per surfel and query")
     panoptic_geometry: bool = _f(False, "panoptic losses also move geometry in the panoptic steps "
                                         "(on the demo scene joint updates lowered F1@5cm from 0.950 to "
                                         "0.843 and PQ too; see benchmarks/RESULTS.md)")
@@ -97,11 +111,6 @@ class TrainConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in (d or {}).items() if k in names})
-
-    @classmethod
-    def help(cls) -> dict[str, str]:
-        return {f.name: f.metadata["help"] for f in fields(cls)}
+    def panoptic_config(self) -> PanopticConfig:
+        """The panoptic field's settings: PanopticConfig defaults with this config's overrides."""
+        return PanopticConfig(**{p: getattr(self, t) for t, p in PANOPTIC_FIELDS.items()})

@@ -93,36 +93,3 @@ def normal_consistency(rendered_normal, alpha, depth, K):
     n_d = depth_to_normal(depth, K)
     w = alpha * (n_d.norm(dim=-1) > 0)
     return (w * (1 - (n_r * n_d).sum(-1))).sum() / w.detach().sum().clamp_min(1.0)
-
-
-def first_nonfinite(terms: dict) -> str | None:
-    """Name of the first non-finite loss term, or None."""
-    for name, v in terms.items():
-        if not bool(torch.isfinite(v).all()):
-            return name
-    return None
-
-
-class NonFiniteGuard:
-    """Skip an update whose loss or gradient is NaN/inf; raise after `limit` consecutive skips.
-
-    One bad frame must not poison the map; a persistent one is an error (nothing is written).
-    """
-
-    def __init__(self, error=None, limit: int = 10):
-        from psimap import PsimapError
-
-        self.error = error or PsimapError
-        self.limit = limit
-        self.streak = 0
-        self.skipped = 0
-
-    def ok(self) -> None:
-        self.streak = 0
-
-    def skip(self, what: str, where: str) -> None:
-        self.streak += 1
-        self.skipped += 1
-        if self.streak >= self.limit:
-            raise self.error(f"{where}: {what} was NaN/inf for {self.streak} consecutive steps; "
-                             f"nothing was written")

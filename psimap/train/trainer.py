@@ -2,20 +2,22 @@
 
 Flow: frames -> (SOGMM prior -> initial surfels, colour from the images) -> Adam over surfel
 parameters, one random frame per step, with L_rgb + depth L1 + L_geo + L_iso + 2DGS normal
-consistency / distortion -> adaptive density control within a surfel budget -> Scene.
+consistency / distortion -> adaptive density control within a surfel budget -> the panoptic
+field on the frozen surfel set (`panoptic_phase`, psimap.panoptic.fit's loop) -> Scene.
 """
 from __future__ import annotations
 
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from psimap import PsimapError
-from psimap.data.frames import DepthSized
+from psimap.nonfinite import Diverged, NonFiniteGuard, backward_if_finite
+from psimap.panoptic.fit import View
 from psimap.train.config import TrainConfig
 from psimap.train import losses as L
 from psimap.train.density import GradStats, accumulate, densify_and_prune
@@ -23,28 +25,42 @@ from psimap.transforms import depth_to_world, quat_to_rotmat_torch
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logit", "color_logit")
 
+# Fewest surfels an initialisation or a budget gives, however small the observed area.
+MIN_SURFELS = 16
+# Initial opacity of every surfel (then learned): below 1, so surfels behind an overlapping one
+# still get some blending weight, and gradients, from the first step.
+INIT_OPACITY = 0.7
+# Depth pixels the target spacing's median depth is taken over: every 7th valid pixel is plenty
+# for a median and keeps the concatenation small.
+SPACING_DEPTH_STEP = 7
+# About this many back-projected points from the whole sequence feed the prior and the init (the
+# SOGMM fit's time grows with the point count; point_stride picks the pixel step).
+PRIOR_POINTS = 400_000
+# Scene extent (sets the position learning rate and the prune size): the 1st-99th percentile box of
+# every 4th pixel of ~20 frames spread over the sequence; percentiles ignore stray depth returns.
+EXTENT_FRAMES = 20
+EXTENT_PIXEL_STEP = 4
+EXTENT_PERCENTILE = 1
+# Depth error before / after training is measured on this many frames spread over the sequence.
+EVAL_FRAMES = 6
+# The position step decays exponentially to this fraction of lr_means (coarse moves first).
+MEANS_LR_END = 0.01
+# loss_end is the mean over the last 1/LOSS_END_PART of the steps (one step's loss is one frame's).
+LOSS_END_PART = 10
+# Weight of the newest step in the smoothed loss shown on the progress bar and in `history`.
+LOSS_EMA = 0.1
+
 
 @dataclass
-class TrainFrame(DepthSized):
-    """One training frame at training resolution: rgb [H,W,3], depth [H,W] (0 = invalid), K [3,3]
-    float32 tensors; c2w [4,4] float64 numpy (OpenCV); viewmat [4,4] float32 world-to-camera."""
+class TrainFrame(View):
+    """One training frame at training resolution: a View (depth, K, poses, pseudo-labels) with its
+    colour image rgb [H,W,3] float32 in [0, 1]."""
 
-    name: str
-    rgb: torch.Tensor
-    depth: torch.Tensor
-    K: torch.Tensor
-    c2w: np.ndarray
-    viewmat: torch.Tensor
-    semantic: torch.Tensor | None = None   # [H,W] long per-frame pseudo-labels (0 = none), or None
-    instance: torch.Tensor | None = None
+    rgb: torch.Tensor = field(kw_only=True)
 
     @property
     def valid(self) -> torch.Tensor:
         return self.depth > 0
-
-
-class Diverged(PsimapError):
-    """A loss term or gradient became NaN / inf for too many consecutive steps."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -85,7 +101,8 @@ def downscale_labels(label, factor: int, shape):
     return torch.from_numpy(np.ascontiguousarray(lab[: shape[0], : shape[1]]))
 
 
-def _to_train_frame(name, rgb, depth, K, c2w, semantic=None, instance=None) -> TrainFrame:
+def to_train_frame(name, rgb, depth, K, c2w, semantic=None, instance=None) -> TrainFrame:
+    """TrainFrame of numpy arrays: rgb [H,W,3], depth [H,W], K [3,3], c2w [4,4] (OpenCV)."""
     return TrainFrame(name=name, rgb=torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
                       depth=torch.from_numpy(np.ascontiguousarray(depth, np.float32)),
                       K=torch.as_tensor(K, dtype=torch.float32), c2w=np.asarray(c2w, np.float64),
@@ -118,11 +135,11 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
             continue
         factor = max(1, int(math.ceil(f.width / cfg.max_width)))
         r, d, K = downscale(rgb, depth, f.K, factor)
-        frames.append(_to_train_frame(f.name or str(i), r, d, K, f.c2w,
-                                      downscale_labels(f.semantic, factor, d.shape),
-                                      downscale_labels(f.instance, factor, d.shape)))
+        frames.append(to_train_frame(f.name or str(i), r, d, K, f.c2w,
+                                     downscale_labels(f.semantic, factor, d.shape),
+                                     downscale_labels(f.instance, factor, d.shape)))
         r2, d2, K2 = downscale(r, d, K, 2)
-        low.append(_to_train_frame(f.name or str(i), r2, d2, K2, f.c2w))
+        low.append(to_train_frame(f.name or str(i), r2, d2, K2, f.c2w))
     if skipped:
         log(f"skipping {len(skipped)} frame(s) without valid depth (or with NaN colour / pose): {', '.join(skipped[:5])}"
             f"{' ...' if len(skipped) > 5 else ''}")
@@ -146,14 +163,14 @@ def backprojected(frames, stride: int):
 
 def target_spacing(frames, pixels: float) -> float:
     """`pixels` pixel footprints at the median observed depth (what the views can resolve), metres."""
-    med = float(np.median(np.concatenate([fr.depth[fr.valid].numpy()[::7] for fr in frames])))
+    med = float(np.median(np.concatenate([fr.depth[fr.valid].numpy()[::SPACING_DEPTH_STEP] for fr in frames])))
     focal = float(np.median([0.5 * (fr.K[0, 0] + fr.K[1, 1]) for fr in frames]))
     return pixels * med / focal
 
 
 def point_stride(frames) -> int:
-    """Pixel step that back-projects about 400k points from the whole sequence (prior and init)."""
-    return max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / 400_000))))
+    """Pixel step that back-projects about PRIOR_POINTS points from the whole sequence (prior and init)."""
+    return max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / PRIOR_POINTS))))
 
 
 def prior_points(frames, cfg: TrainConfig, log=print):
@@ -201,15 +218,21 @@ def make_params(means, quats, scales, opacities, colors) -> dict:
             "color_logit": _logit(colors).requires_grad_(True)}
 
 
+def surfel_tensors(params: dict) -> tuple:
+    """(means [N,3], unit quats [N,4], scales [N,2], opacities [N], colors [N,3]) from the
+    parametrisation; differentiable in the leaf tensors."""
+    q = params["quats"]
+    return (params["means"], q / q.norm(dim=1, keepdim=True).clamp_min(1e-12), params["log_scales"].exp(),
+            torch.sigmoid(params["opacity_logit"]), torch.sigmoid(params["color_logit"]))
+
+
 def surfel_values(params: dict) -> dict:
     """Checkpoint surfels (contract) from the parametrisation (detached)."""
     with torch.no_grad():
-        q = params["quats"] / params["quats"].norm(dim=1, keepdim=True).clamp_min(1e-12)
-        n = params["means"].shape[0]
-        return {"means": params["means"].detach().clone(), "quats": q.clone(),
-                "scales": params["log_scales"].exp().clone(),
-                "opacities": torch.sigmoid(params["opacity_logit"]).clone(),
-                "colors": torch.sigmoid(params["color_logit"]).clone(),
+        means, quats, scales, opacities, colors = surfel_tensors(params)
+        n = means.shape[0]
+        return {"means": means.detach().clone(), "quats": quats.clone(), "scales": scales.clone(),
+                "opacities": opacities.clone(), "colors": colors.clone(),
                 "semantic": torch.zeros(n, 0), "instance": torch.zeros(n, 0)}
 
 
@@ -227,7 +250,7 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
     sogmm = fit_sogmm(pts4, noise=noise)
     side = sogmm.extents()
     area = float((side[:, 0] * side[:, 1]).sum())
-    n_init = max(16, int(round(area / spacing**2)))
+    n_init = max(MIN_SURFELS, int(round(area / spacing**2)))
     means, quats, scales, _ = sample_surfels(sogmm, n_init, seed=cfg.seed)
     log(f"SOGMM prior: K = {sogmm.K} components from {len(pts4)} points, residual "
         f"{sogmm.fit_stats.get('residual_mean', float('nan')) * 1000:.1f} mm (budget "
@@ -237,7 +260,7 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
     p, c = backprojected(frames, stride)
     _, nn = cKDTree(p).query(means, k=1)
     colors = c[nn]
-    params = make_params(means, quats, scales, np.full(len(means), 0.7), colors)
+    params = make_params(means, quats, scales, np.full(len(means), INIT_OPACITY), colors)
     return params, SOGMMIndex(sogmm), {"sogmm_K": sogmm.K, "area": area, "n_init": len(means)}
 
 
@@ -258,7 +281,7 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
     q = rng.normal(size=(len(means), 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     log(f"baseline init: {len(means)} surfels from observed points (no prior)")
-    params = make_params(means, q, np.stack([s, s], 1), np.full(len(means), 0.7), np.clip(colors, 0, 1))
+    params = make_params(means, q, np.stack([s, s], 1), np.full(len(means), INIT_OPACITY), np.clip(colors, 0, 1))
     return params, None, {"sogmm_K": 0, "area": float(len(means) * spacing**2), "n_init": len(means)}
 
 
@@ -266,21 +289,21 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
 # training
 
 
-def _optimizer(params: dict, cfg: TrainConfig, extent: float):
+def make_optimizer(params: dict, cfg: TrainConfig, extent: float):
+    """Adam over the surfel parameters, one group per name (PARAM_NAMES order, group 0 = means);
+    returns (optimizer, the position step: lr_means x the scene extent)."""
     lrs = {"means": cfg.lr_means * extent, "quats": cfg.lr_quats, "log_scales": cfg.lr_scales,
            "opacity_logit": cfg.lr_opacity, "color_logit": cfg.lr_colors}
     groups = [{"params": [params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES]
+    # eps as in 3DGS: surfel gradients are tiny, and Adam's default 1e-8 would shrink their steps
     return torch.optim.Adam(groups, eps=1e-15), lrs["means"]
 
 
-def render(params: dict, fr: TrainFrame, need_features: bool = False):
+def render(params: dict, fr: TrainFrame):
+    """RenderOutput of all surfels in the view `fr`."""
     from psimap.render import rasterize
 
-    q = params["quats"]
-    return rasterize(params["means"], q / q.norm(dim=1, keepdim=True).clamp_min(1e-12),
-                     params["log_scales"].exp(), torch.sigmoid(params["opacity_logit"]),
-                     torch.sigmoid(params["color_logit"]), fr.viewmat, fr.K, fr.width, fr.height,
-                     backend="auto")
+    return rasterize(*surfel_tensors(params), fr.viewmat, fr.K, fr.width, fr.height, backend="auto")
 
 
 def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: float,
@@ -325,6 +348,34 @@ def depth_error(params: dict, frames) -> float:
         tot += float((out.depth - fr.depth).abs()[v].sum())
         cnt += int(v.sum())
     return tot / max(cnt, 1)
+
+
+def panoptic_phase(params: dict, frames, classes, cfg: TrainConfig, *, index, spacing: float,
+                   extent: float, lr_means: float, generator: torch.Generator, rng: np.random.Generator,
+                   log, progress: bool) -> tuple[dict, dict]:
+    """The panoptic field (paper §4.2) trained on the surfel set the geometry schedule froze
+    (`psimap.panoptic.fit.train_field`); with cfg.panoptic_geometry the geometry keeps training
+    with its own losses and the panoptic ones. Returns (checkpoint part, metrics).
+
+    params: the leaf tensors (PARAM_NAMES), replaced by detached ones on return; frames:
+    TrainFrames; lr_means: the position step the geometry schedule ended at (continued).
+    """
+    from psimap.panoptic.fit import JointGeometry, train_field
+
+    for k in PARAM_NAMES:
+        params[k] = params[k].detach().clone().requires_grad_(cfg.panoptic_geometry)
+    joint = None
+    if cfg.panoptic_geometry:
+        optimizer, _ = make_optimizer(params, cfg, extent)
+        optimizer.param_groups[0]["lr"] = lr_means
+        joint = JointGeometry(params={k: params[k] for k in PARAM_NAMES}, optimizer=optimizer,
+                              terms=lambda fr: loss_terms(params, fr, cfg, index, spacing, True, generator)[0])
+    state, metrics = train_field(frames, classes, cfg.panoptic_config(), lambda: surfel_tensors(params),
+                                 iters=cfg.panoptic_iters, scene_scale=extent, rng=rng, generator=generator,
+                                 joint=joint, log=log, progress=progress, log_every=cfg.log_every)
+    for k in PARAM_NAMES:
+        params[k] = params[k].detach()
+    return state, metrics
 
 
 def _isatty() -> bool:
@@ -374,8 +425,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
         seq, data_path = data, str(getattr(data, "root", ""))
     frames, low, skipped = prepare_frames(seq, cfg, log)
     spacing = target_spacing(frames, cfg.spacing_pixels)
-    p_all, _ = backprojected(frames[:: max(1, len(frames) // 20)], 4)
-    extent = float(np.linalg.norm(np.percentile(p_all, 99, 0) - np.percentile(p_all, 1, 0)))
+    p_all, _ = backprojected(frames[:: max(1, len(frames) // EXTENT_FRAMES)], EXTENT_PIXEL_STEP)
+    extent = float(np.linalg.norm(np.percentile(p_all, 100 - EXTENT_PERCENTILE, 0)
+                                  - np.percentile(p_all, EXTENT_PERCENTILE, 0)))
 
     index = None
     steps_before = 0
@@ -398,19 +450,19 @@ def _train(data, cfg, *, resume, progress, log, callback):
         params, index, info = init_from_prior(frames, cfg, spacing, log)
     else:
         params, index, info = init_from_points(frames, cfg, spacing, log)
-    budget = max(int(cfg.budget_factor * info["n_init"]), 16)
+    budget = max(int(cfg.budget_factor * info["n_init"]), MIN_SURFELS)
 
-    eval_frames = frames[:: max(1, len(frames) // 6)][:6]
+    eval_frames = frames[:: max(1, len(frames) // EVAL_FRAMES)][:EVAL_FRAMES]
     depth_err_start = depth_error(params, eval_frames)
-    optimizer, lr_means0 = _optimizer(params, cfg, extent)
+    optimizer, lr_means0 = make_optimizer(params, cfg, extent)
     grad_stats = GradStats.zeros(params["means"].shape[0])
     iters = int(cfg.iters)
     lowres_steps = int(cfg.lowres_until * iters)
     reg_from = int(cfg.regularize_from * iters)
     dens_from, dens_until = int(cfg.densify_from * iters), int(cfg.densify_until * iters)
     ema, first_loss = {}, None
-    guard = L.NonFiniteGuard(Diverged)
-    recent, window = [], max(1, iters // 10)      # final loss = mean of the last 10 % of steps
+    guard = NonFiniteGuard()
+    recent, window = [], max(1, iters // LOSS_END_PART)
     history = []
     dens_log = []
     bar = tqdm(total=iters, desc="train", disable=not progress, dynamic_ncols=True)
@@ -422,19 +474,12 @@ def _train(data, cfg, *, resume, progress, log, callback):
         geo_scale = 1.0 + (cfg.geo_final - 1.0) * step / max(iters - 1, 1)
         terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen,
                                 geo_scale=geo_scale)
-        bad = L.first_nonfinite(terms)
-        if bad is None:
-            loss = sum(terms.values())
-            loss.backward()
-            bad = next((f"gradient of {k}" for k in PARAM_NAMES
-                        if params[k].grad is not None and not bool(torch.isfinite(params[k].grad).all())),
-                       None)
+        bad = backward_if_finite(terms, {k: params[k] for k in PARAM_NAMES})
         if bad is not None:
             # skip this update: one bad frame must not poison the map; a persistent one is an error
             optimizer.zero_grad(set_to_none=True)
             try:
-                guard.skip(bad if bad.startswith("gradient") else f"loss term '{bad}'",
-                           f"training diverged at step {steps_before + step} (frame {fr.name})")
+                guard.skip(bad, f"training diverged at step {steps_before + step} (frame {fr.name})")
             except Diverged:
                 bar.close()
                 raise
@@ -443,8 +488,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if step < dens_until:
             accumulate(grad_stats, params["means"].grad, params["means"].detach(), fr.viewmat, fr.K,
                        fr.width, fr.height)
-        # position step decays exponentially to 1 % (coarse moves first, then refinement)
-        optimizer.param_groups[0]["lr"] = lr_means0 * 0.01 ** (step / max(iters - 1, 1))
+        # position step decays exponentially (coarse moves first, then refinement)
+        optimizer.param_groups[0]["lr"] = lr_means0 * MEANS_LR_END ** (step / max(iters - 1, 1))
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         vals = {k: float(v.detach()) for k, v in terms.items()}
@@ -452,7 +497,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if first_loss is None:
             first_loss = dict(vals)
         for k, v in vals.items():
-            ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
+            ema[k] = v if k not in ema else (1 - LOSS_EMA) * ema[k] + LOSS_EMA * v
         recent.append(vals)
         if len(recent) > window:
             recent.pop(0)
@@ -481,9 +526,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
     panoptic_state, panoptic_metrics = None, {}
     classes = list(getattr(seq, "classes", []) or [])
     if cfg.panoptic and cfg.panoptic_iters > 0:
-        from psimap.train.panoptic_phase import has_labels, panoptic_phase
+        from psimap.panoptic.fit import labelled
 
-        if has_labels(frames):
+        if labelled(frames):
             panoptic_state, panoptic_metrics = panoptic_phase(
                 params, frames, classes, cfg, index=index, spacing=spacing, extent=extent,
                 lr_means=optimizer.param_groups[0]["lr"], generator=gen, rng=rng, log=log,

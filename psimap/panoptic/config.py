@@ -1,0 +1,62 @@
+"""Every setting of the panoptic field in one dataclass: the only place its defaults are written.
+
+Stdlib only, so `psimap.train.config.TrainConfig` can take its panoptic defaults from here without
+importing torch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class PanopticConfig:
+    feat_dim: int = 16              # instance feature size per surfel and query
+    topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
+    temperature: float = 0.1        # softmax temperature over query affinities
+    init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
+    # 2D masks smaller than this fraction of the image are ignored (5 px at 160x120: bottles and
+    # balls there cover a median 7-20 px; the former 0.002 = 38 px ignored most of their masks)
+    min_mask_fraction: float = 0.0003
+    # pixels sampled per frame for matching and losses (all of a 160x120 frame: at 4096 a 12 px
+    # mask kept ~3 pixels and its matching cost was noise)
+    pixels_per_step: int = 20000
+    w_ins: float = 1.0              # lambda_3
+    w_sem: float = 1.0              # lambda_4
+    lr_surfel: float = 0.02         # Adam lr of per-surfel features
+    lr_query: float = 0.01          # Adam lr of queries and attention weights
+    reject_dice: float = 0.95       # matches with Dice cost above this are not supervised
+    # class term of the matching cost (0 = Dice + BCE only). Off by default: at 15 % noise (160x120,
+    # seeds 0 / 1) weight 1 gave PQ 0.647 / 0.757 against 0.675 / 0.755 without it (RESULTS.md)
+    w_class: float = 0.0
+    adjust_start: int = 60          # first step of dynamic query adjustment
+    adjust_every: int = 60          # then every this many steps
+    # useless: matched in fewer of the frames that see it. Real objects' queries were matched in
+    # >= 0.56 of them at 15 % noise (seeds 0-2); at 0.1 a query on a cabinet's border, matched in
+    # 8 of 53 frames, survived as a false instance (seed 2: PQ 0.861 -> 0.921 at 0.3)
+    min_match_rate: float = 0.3
+    iom_threshold: float = 0.6      # duplicate: IoM with a larger query above this
+    # 3D mask of a query for the IoM test: surfels with A(q, g) above this. (Thresholding the
+    # softmax share instead collapsed two unconverged box queries into one in
+    # tests/test_panoptic_field.py.)
+    mask_affinity: float = 0.5
+    min_instance_surfels: int = 10  # instances with fewer surfels are dropped at export
+    # duplicate rule: two queries matched to two different 2D masks of one frame in at least this
+    # many frames are different objects, whatever their 3D IoM (0 = off)
+    distinct_frames: int = 2
+    # final cleanup: a thing surfel takes the majority instance of its k nearest thing surfels
+    # (argmax noise on object borders); 0 = off
+    smooth_k: int = 8
+    # export: a thing surfel's instance maximises p(q | g) * p(class of q | g), the instance and the
+    # semantic heads combined, instead of p(q | g) alone (a mug's border surfels won by the table's
+    # query but whose semantics say "mug" go to the mug)
+    class_fusion: bool = True
+    # an instance's class = the majority class of the 2D masks its query was matched to (a merged
+    # mask goes to the larger object's query, so its class does not leak onto the smaller object,
+    # whose surfels' own semantics it does drag: a mug's pixels were 49 % "table" at 15 % noise);
+    # False = majority of the instance's surfels' semantic argmax
+    query_class: bool = True
+    spawn: bool = True              # a 2D mask that no query covers in 3D seeds a new query
+    spawn_feature: bool = True      # a spawned query starts from its mask's surfels' features
+    spawn_split: bool = True        # no spawn for a mask drawn mostly by a query busy with a same-class mask
+    max_spawn_per_step: int = 2
+    max_queries: int = 256
