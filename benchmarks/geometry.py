@@ -399,7 +399,7 @@ def main(argv=None):
              f"`psimap.data.synthetic.generate(seed"
              f"{'' if not depth_tag(args.depth_noise, args.depth_dropout) else f', depth_noise=DepthNoise.degraded({args.depth_noise:g}, {args.depth_dropout})'})`; wall / CPU = training + mesh extraction (raw TSDF: "
              f"fusion only; panoptic phase off; CPU = process time); F1 at 5 cm, completeness on camera-seen "
-             f"GT (DESIGN.md metrics). Load average (1 / 5 / 15 min) at the start "
+             f"GT (docs/metrics.md). Load average (1 / 5 / 15 min) at the start "
              f"{' / '.join(f'{v:.1f}' for v in load_start)}, at the end "
              f"{' / '.join(f'{v:.1f}' for v in load_end)} on 2 shared cores: wall times are noisy, "
              f"compare CPU seconds."]

@@ -16,7 +16,7 @@ import numpy as np
 
 from psimap import PsimapError
 
-UP = np.array([0.0, 0.0, 1.0])     # world frame is Z-up (DESIGN.md)
+UP = np.array([0.0, 0.0, 1.0])     # world frame is Z-up (docs/conventions.md)
 _SUPPORT_COS = np.cos(np.radians(30.0))
 
 

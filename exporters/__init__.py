@@ -1,6 +1,6 @@
 """psimap.exporters: from a trained checkpoint to per-object, simulation-ready assets.
 
-One module per step (DESIGN.md data flow): instance meshes (TSDF) -> repair -> completion ->
+One module per step (docs/architecture.md data flow): instance meshes (TSDF) -> repair -> completion ->
 decimation -> UV + texture -> collision geometry + mass -> the writer registry (exporters.formats:
 MJCF / USD / GLB).
 Installed as `psimap.exporters` (never as a top-level `exporters`).

@@ -1,4 +1,4 @@
-"""The `scene.ckpt` file: a versioned schema of plain tensors and containers (DESIGN.md, Checkpoint).
+"""The `scene.ckpt` file: a versioned schema of plain tensors and containers (docs/checkpoint.md).
 
 Written atomically (temp file, then rename) and read with ``torch.load(weights_only=True)``, so
 loading never unpickles code. Every problem with a file (truncated, not a checkpoint, written by a

@@ -34,7 +34,7 @@ def pos(help: str, **extra):
 
 @dataclass
 class GenerateOptions:
-    out: str = pos("output folder for the synthetic scene (scene format of DESIGN.md)")
+    out: str = pos("output folder for the synthetic scene (docs/scene-format.md)")
     seed: int = opt(0, "random seed: the same seed gives the same scene")
     frames: int = opt(60, "number of camera frames")
     width: int = opt(160, "image width in pixels")

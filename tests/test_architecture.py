@@ -16,7 +16,7 @@ FOLDERS = {"psimap": "psimap", "exporters": "psimap.exporters", "completion": "p
            "sim": "psimap.sim"}
 
 # The import order of the stages, earliest first: a module may import its own stage and earlier
-# ones. It follows DESIGN.md's data flow (frames -> SOGMM prior -> surfels rendered and trained
+# ones. It follows the data flow of docs/architecture.md (frames -> SOGMM prior -> surfels rendered and trained
 # -> scene.ckpt -> export), with three readings of it:
 # - checkpoint / scene (the trained map as a value: surfels, labels, cameras, its file format, and
 #   rendering / meshing of it) come before panoptic and train, which build one and return it;

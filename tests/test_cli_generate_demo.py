@@ -48,11 +48,15 @@ def test_demo_runs(tmp_path, capsys):
     out = tmp_path / "demo"
     rc = main(["demo", "--out", str(out), "--seed", "1", *SMALL, "--iters", "20", "--panoptic-iters", "20"])
     text = capsys.readouterr().out
-    # the exit code follows the simulation check (a failed check is exit 2, outputs still written)
-    passed = json.loads((out / "export" / "report.json").read_text())["check"]["passed"]
+    # the exit code follows the simulation check and the export's outcome (too few things dynamic:
+    # exit 2, outputs still written, the reason said)
+    rep = json.loads((out / "export" / "report.json").read_text())
+    passed = rep["check"]["passed"] and rep["outcome"]["passed"]
     assert rc == (0 if passed else 2)
+    assert rep["outcome"]["summary"] in text
     assert "generate" in text and ("psimap demo: done" in text if passed else
-                                   "simulation check FAILED" in text and "psimap demo: simulation" in text)
+                                   ("simulation check FAILED" in text and "psimap demo: simulation" in text)
+                                   or "psimap demo: too few things dynamic" in text)
     # the whole chain ran: checkpoint, metrics, exported scene with its report
     for stage in ("train", "eval", "export"):
         assert f"] {stage}:" in text

@@ -1,6 +1,6 @@
 """Core data types shared by every loader: a posed RGB-D frame and a lazily loaded sequence of them.
 
-Conventions (DESIGN.md): world frame Z-up, metres; cameras OpenCV (x right, y down, z forward);
+Conventions (docs/conventions.md): world frame Z-up, metres; cameras OpenCV (x right, y down, z forward);
 `c2w` is camera-to-world. Loaders convert to this at load time.
 """
 from __future__ import annotations

@@ -25,7 +25,9 @@ import json
 import os
 import re
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -40,33 +42,42 @@ REPLICA_CAMERA = {"w": 1200, "h": 680, "fx": 600.0, "fy": 600.0, "cx": 599.5, "c
 _SCANNET_STUFF = {"wall", "floor", "ceiling"}
 
 
+@dataclass(frozen=True)
+class Layout:
+    """One capture layout `psimap.data.load` reads: `detect(folder) -> bool` says whether a folder
+    is one (from the files present, cheaply), `read(folder) -> FrameSequence` opens it lazily."""
+
+    name: str
+    detect: Callable[[Path], bool]
+    read: Callable[[Path], FrameSequence]
+    what: str               # what the detection looks for, as the error message names it
+
+
+def _is_7scenes(p: Path) -> bool:
+    return (p / "camera-intrinsics.txt").is_file() or next(p.glob("frame-*.pose.txt"), None) is not None
+
+
 def load(path: str | os.PathLike) -> FrameSequence:
-    """Open posed RGB-D frames; the layout (psimap scene folder, 7-Scenes, ScanNet, Replica) is
-    detected from the files present. Returns a FrameSequence whose frames are read on access."""
+    """Open posed RGB-D frames; the layout (LAYOUTS: psimap scene folder, 7-Scenes, ScanNet,
+    Replica) is detected from the files present. Returns a FrameSequence whose frames are read on
+    access."""
     p = Path(path)
     if not p.exists():
         raise PsimapError(f"no such file or folder: {p}")
     layout = detect_layout(p)
-    return {"psimap": read_scene, "7scenes": load_7scenes, "scannet": load_scannet,
-            "replica": load_replica}[layout](p)
+    return next(lay for lay in LAYOUTS if lay.name == layout).read(p)
 
 
 def detect_layout(p: Path) -> str:
-    """'psimap' | '7scenes' | 'scannet' | 'replica'; PsimapError if none matches."""
+    """The name of the first of LAYOUTS that `p` is; PsimapError if none matches."""
     if p.is_file():
         if p.suffix == ".json":
             return "psimap"
         raise PsimapError(f"{p}: expected a scene folder (or its transforms.json), got a file")
-    if (p / TRANSFORMS).is_file():
-        return "psimap"
-    if (p / "camera-intrinsics.txt").is_file() or next(p.glob("frame-*.pose.txt"), None) is not None:
-        return "7scenes"
-    if all((p / d).is_dir() for d in ("color", "depth", "pose")):
-        return "scannet"
-    if (p / "traj.txt").is_file() and (p / "results").is_dir():
-        return "replica"
-    raise PsimapError(f"{p}: not a recognised layout (expected transforms.json; 7-Scenes frame-*.pose.txt; "
-                      f"ScanNet color/ depth/ pose/; or Replica results/ + traj.txt)")
+    for lay in LAYOUTS:
+        if lay.detect(p):
+            return lay.name
+    raise PsimapError(f"{p}: not a recognised layout (expected " + "; ".join(lay.what for lay in LAYOUTS) + ")")
 
 
 def _read_matrix(path: Path, allow_nonfinite: bool = False) -> np.ndarray:
@@ -319,3 +330,15 @@ def load_replica(root: str | os.PathLike) -> FrameSequence:
 
     return FrameSequence(loader=load_frame, count=len(records), classes=[], root=str(root), layout="replica",
                          names=[r[3] for r in records])
+
+
+# The layouts `load` detects, tried in this order (adding one: a reader and a line here,
+# docs/extending.md).
+LAYOUTS: list[Layout] = [
+    Layout("psimap", lambda p: (p / TRANSFORMS).is_file(), lambda p: read_scene(p), "transforms.json"),
+    Layout("7scenes", _is_7scenes, lambda p: load_7scenes(p), "7-Scenes frame-*.pose.txt"),
+    Layout("scannet", lambda p: all((p / d).is_dir() for d in ("color", "depth", "pose")),
+           lambda p: load_scannet(p), "ScanNet color/ depth/ pose/"),
+    Layout("replica", lambda p: (p / "traj.txt").is_file() and (p / "results").is_dir(),
+           lambda p: load_replica(p), "or Replica results/ + traj.txt"),
+]

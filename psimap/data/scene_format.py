@@ -1,4 +1,4 @@
-"""The psimap scene folder (DESIGN.md "Scene format"): writer, lazy reader, ground truth, labeled PLY.
+"""The psimap scene folder (docs/scene-format.md): writer, lazy reader, ground truth, labeled PLY.
 
 Layout (nerfstudio style, poses OpenGL on disk, OpenCV in memory)::
 

@@ -530,7 +530,7 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
              pose_noise: float = 0.0, depth_noise: bool | N.DepthNoise = True, ceiling: bool | None = None,
              labels: N.LabelNoise | None = None, lidar_every: int = 10, progress: bool | None = None,
              overwrite: bool = False) -> dict:
-    """Write a synthetic scene with exact ground truth to `out_dir` (scene format of DESIGN.md).
+    """Write a synthetic scene with exact ground truth to `out_dir` (docs/scene-format.md).
 
     label_noise: one knob for the pseudo-label errors (`LabelNoise.from_rate`); `labels` overrides
     it with explicit rates. depth_noise: sensor noise and invalid pixels on the written depth (True:

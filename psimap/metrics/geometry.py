@@ -1,4 +1,4 @@
-"""Geometry metrics (DESIGN.md): accuracy, completeness, Chamfer-L1, precision / recall / F1.
+"""Geometry metrics (docs/metrics.md): accuracy, completeness, Chamfer-L1, precision / recall / F1.
 
 Points are sampled area-weighted on each mesh; each point's distance to the *other mesh* is the exact
 point-to-triangle distance (Open3D's BVH `compute_distance`), so no sample-spacing bias enters the
