@@ -571,6 +571,35 @@ def add_support_slabs(env: StaticEnvironment, supports, owner: str, thickness: f
                                             _prism(s.polygon, s.height - thickness, s.height), s.height, s.area))
 
 
+def flatten_solid(mesh, supports, *, bump: float = 0.05):
+    """(mesh, steps): a static furniture solid (watertight trimesh) with what rises less than `bump`
+    above each of its supports, inside the support's footprint, cut away: a fused table top is
+    wavy by a centimetre, and a bottle cut free of the table's bumps would stand on them and tip.
+    Steps name each cut; a cut that would take more than a tenth of the solid is not made."""
+    import manifold3d
+
+    from psimap.completion.meshops import to_manifold
+
+    steps = []
+    for s in supports:
+        if len(s.polygon) < 3:
+            continue
+        a = to_manifold(mesh)
+        cap = to_manifold(_prism(s.polygon, s.height, s.height + bump))
+        cut = a - cap
+        removed = float(a.volume() - cut.volume())
+        if removed <= 1e-9 or removed > 0.1 * float(a.volume()):
+            continue
+        import trimesh
+
+        m = cut.to_mesh()
+        out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts), process=False)
+        if out.is_watertight and out.volume > 0:
+            mesh = out
+            steps.append(f"top flattened at {s.height:.3f} m ({removed * 1e6:.0f} cm3)")
+    return mesh, steps
+
+
 def flatten_under(parts, supports, *, bump: float = 0.05, margin: float = 0.02) -> list:
     """Convex collider parts [trimesh] of a static furniture object with every part that bulges
     less than `bump` above one of its supports (inside the footprint grown by `margin`) cut flat at

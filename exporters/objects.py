@@ -69,6 +69,7 @@ class SceneObject:
     texture_coverage: float = 0.0           # fraction of texels some view saw
     solid_pitch: float = 0.0                # voxel (m) of the solid it was closed as (0: not voxelised)
     solid_kind: str = ""                    # how (exporters.solidify): "enclosed" | "carved" | "shell" | ""
+    support_z: float | None = None          # height of the plane it rests on (None: not resting)
     measured: Measurements = field(default_factory=Measurements)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
 
@@ -184,6 +185,11 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         obj.solid_pitch = float(solid_kw["pitch"])
         obj.solid_kind = str(m.metadata["solidify"])
     if support is not None:
+        obj.support_z = float(support)
+        cut = cut_at_support(m, float(support))
+        if cut is not m:
+            obj.measured.repair_steps.append(f"cut flat at its support ({float(support):.3f} m)")
+            m = cut
         m, grew = rest_on_support(m, float(support))
         if grew:
             obj.measured.repair_steps.append("extended down to its support")
@@ -237,6 +243,8 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     t0 = time.perf_counter()
     obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed,
                                        obstacles=obstacles)
+    if obj.support_z is not None and not obj.collision.is_primitive:
+        obj.collision.parts = with_flat_base(obj.collision.parts, obj.support_z)
     obj.measured.timings["collision_s"] = time.perf_counter() - t0
     if obj.collision.kind == "sphere":
         # a sphere collider means the object is a ball: its COM is the centre (a reconstruction's
@@ -265,6 +273,54 @@ def view_texel(mesh, views) -> float:
         if z > 1e-3:
             best = min(best, z / float(max(v.K[0, 0], v.K[1, 1])))
     return 0.5 * best if np.isfinite(best) else 0.0
+
+
+def with_flat_base(parts, z: float, *, touch: float = 3e-3, band: float = 0.01) -> list:
+    """Convex collider parts whose bottom reaches the support plane z (within `touch`), each with
+    its vertices less than `band` above the plane copied straight down onto it: a hull simplified
+    to a tolerance tilts a bottle's small base by millimetres, and a tall object standing on one
+    edge of it tips over. The footprint does not grow (a wider base would reach into the neighbour
+    the collider was clipped against). Parts not at the base are kept as they are."""
+    import trimesh
+
+    out = []
+    for p in parts:
+        v = np.asarray(p.vertices, np.float64)
+        low = v[v[:, 2] <= z + band]
+        if v[:, 2].min() > z + touch or len(low) < 3:
+            out.append(p)
+            continue
+        try:
+            out.append(trimesh.convex.convex_hull(np.vstack([v, np.column_stack([low[:, :2], np.full(len(low), z)])])))
+        except Exception:           # a degenerate base: keep the part
+            out.append(p)
+    return out
+
+
+def cut_at_support(mesh, z: float, tol: float = 1e-3, min_keep: float = 0.5):
+    """A watertight solid cut flat at the support plane z: what the fusion let sink into the table
+    it stands on goes, and the cut is its flat bottom (manifold3d). The same mesh when nothing lies
+    more than `tol` below z, or when the cut would keep less than `min_keep` of the volume (then
+    the support is not under it)."""
+    import manifold3d
+
+    from psimap.completion.meshops import to_manifold
+
+    lo, hi = np.asarray(mesh.bounds, np.float64)
+    if lo[2] >= z - tol or hi[2] <= z:
+        return mesh
+    pad = 1.0 + float(np.ptp(np.asarray(mesh.vertices)[:, :2], axis=0).max())
+    box = manifold3d.Manifold.cube([2 * pad + (hi[0] - lo[0]), 2 * pad + (hi[1] - lo[1]), hi[2] - z + 1.0])
+    box = box.translate([lo[0] - pad, lo[1] - pad, z])
+    a = to_manifold(mesh)
+    out = a ^ box
+    if float(out.volume()) < min_keep * float(a.volume()):
+        return mesh
+    import trimesh
+
+    mm = out.to_mesh()
+    res = trimesh.Trimesh(np.asarray(mm.vert_properties, np.float64)[:, :3], np.asarray(mm.tri_verts), process=False)
+    return res if res.is_watertight and res.volume > 0 else mesh
 
 
 def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
@@ -458,7 +514,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from psimap.completion import CompletionContext
     from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
-    from psimap.exporters.environment import add_support_slabs, flatten_under, furniture_tops, static_environment
+    from psimap.exporters.environment import (add_support_slabs, flatten_solid, flatten_under, furniture_tops,
+                                              static_environment)
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.physics import is_static_class
     from psimap.exporters.solidify import disc_points
@@ -502,6 +559,10 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             objs[-1].measured.repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away "
                                                      "from its main body left out")
     t0 = time.perf_counter()
+    for o in objs:
+        if o.role is not Role.SKIPPED and tops.get(o.instance_id):
+            o.mesh, steps = flatten_solid(o.mesh, tops[o.instance_id])
+            o.measured.repair_steps += steps
     make_consistent(objs, floor_z)
     timings["consistency_s"] = time.perf_counter() - t0
     for o in objs:
@@ -569,16 +630,21 @@ def observed_coverage(mesh, surfel_points: np.ndarray, *, tol: float, samples: i
 
 def resting_height(item, supports, max_gap: float = 0.05) -> float | None:
     """Height of the support a fused thing (instance_meshes item) rests on: the highest support
-    (exporters.environment) under its plan-view centre within `max_gap` of its bottom (the surfels'
-    support level when it has one, else its lowest point); else the surfels' level as it is. A
-    fused bottom sinks into or hovers over what it stands on by a centimetre; snapped to the
-    support's own plane, object and collider meet flat."""
+    (exporters.environment) under its plan-view centre within `max_gap` of its fused bottom (which
+    sinks into or hovers over what it stands on by a centimetre or two), else of the surfels'
+    support level; else that level as it is. Snapped to the support's own plane, object and
+    collider meet flat. (The surfels' level alone found the floor under a bottle on a cabinet, and
+    a lower shelf board under a bottle on the board above it.)"""
     from psimap.exporters.environment import support_under
 
     lo, hi = np.asarray(item.mesh.bounds, np.float64)
-    bottom = item.support_z if item.support_z is not None else float(lo[2])
-    s = support_under(supports, 0.5 * (lo[:2] + hi[:2]), bottom, max_gap=max_gap)
-    return s.height if s is not None else item.support_z
+    centre = 0.5 * (lo[:2] + hi[:2])
+    for bottom in (float(lo[2]), item.support_z):
+        if bottom is not None:
+            s = support_under(supports, centre, bottom, max_gap=max_gap)
+            if s is not None:
+                return s.height
+    return item.support_z
 
 
 def object_from_scan(path, label: str, instance_id: int, *, place_on_floor: bool = True,
