@@ -218,3 +218,43 @@ def test_rotated_scene_renders_the_same_and_its_up_is_found(frame):
     if frame != "colmap":      # an axis-aligned frame comes back exactly (snapped estimate)
         np.testing.assert_allclose(est.rotation @ R, np.eye(3), atol=1e-12)
         np.testing.assert_allclose(back.surfels["means"].numpy(), scene.surfels["means"].numpy(), atol=1e-5)
+
+
+SHARED = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-chess"
+
+
+@pytest.mark.skipif(not SHARED.is_dir(), reason="needs ../shared/data (7-Scenes chess)")
+def test_real_kinect_capture_finds_its_floor_and_table():
+    """7-Scenes chess: KinectFusion's world is its first camera's frame (pitched down at the chess
+    table), not gravity. The estimate is the same whatever frame the capture is given in, and in
+    the frame it gives, the table top and the floor are level."""
+    from psimap.data import load
+    from psimap.geometry.tsdf import fuse_tsdf
+
+    seq = load(SHARED)
+    frames = [seq[i] for i in range(0, len(seq), 10)]
+    mesh = fuse_tsdf([f.depth for f in frames], [f.K for f in frames], [f.c2w for f in frames], voxel_size=0.03)
+    c2w = np.stack([f.c2w for f in frames])
+    ups = []
+    for frame in ("z-up", "colmap"):
+        R = FRAMES[frame]
+        T = np.eye(4)
+        T[:3, :3] = R
+        est = estimate_up(mesh.triangles_center @ R.T, mesh.face_normals @ R.T, mesh.area_faces, T @ c2w)
+        ups.append(R.T @ est.up)
+        assert est.margin > 0.5
+    assert _angle(ups[0], ups[1]) < 0.5
+    assert _angle(ups[0], [0, 0, 1]) > 60         # the capture's frame is far from Z-up
+    # level: the estimate is the direction the floor and the table top face, to a degree: tilting
+    # it by 3 degrees either way loses level surface
+    def level(u):
+        return mesh.area_faces[mesh.face_normals @ u > np.cos(np.radians(3))].sum() / mesh.area_faces.sum()
+
+    up = ups[0] / np.linalg.norm(ups[0])
+    assert level(up) > 0.1
+    a = np.cross(up, [1.0, 0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(up, a)
+    for axis in (a, -a, b, -b):
+        tilted = np.cos(np.radians(3)) * up + np.sin(np.radians(3)) * axis
+        assert level(tilted) < level(up)
