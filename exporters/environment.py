@@ -301,6 +301,20 @@ def _face_points(triangles: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray, 
     return pts, np.concatenate([np.repeat(areas / 4, 3), areas / 4])
 
 
+def _plane_pieces(triangles, areas, faces, project, *, cell: float, min_area: float, used: np.ndarray):
+    """(convex polygon, observed area) of each connected piece of the coplanar `faces`, in the 2D
+    coordinates project(points [n, 3]) -> [n, 2] of their plane (split_footprint); the faces of
+    every piece kept are marked in `used`."""
+    comp = _components_2d(project(triangles[faces].mean(axis=1)), cell)
+    for c in np.unique(comp):
+        g = faces[comp == c]
+        if areas[g].sum() < min_area:
+            continue
+        used[g] = True
+        pts, wts = _face_points(triangles[g], areas[g])
+        yield from split_footprint(project(pts), wts, cell=cell, min_area=min_area)
+
+
 def find_supports(triangles, normals, areas, *, tol: float, cell: float, min_area: float = MIN_SUPPORT_AREA,
                   facing: float = 1.0):
     """(supports, face mask) of up-facing surfaces: [Support] heaviest level first, and which faces
@@ -315,15 +329,9 @@ def find_supports(triangles, normals, areas, *, tol: float, cell: float, min_are
     for level in _levels(centres[idx, 2], areas[idx], tol, min_area):
         f = idx[level]
         z = float(np.average(centres[f, 2], weights=areas[f]))
-        comp = _components_2d(centres[f, :2], cell)
-        for c in np.unique(comp):
-            g = f[comp == c]
-            if areas[g].sum() < min_area:
-                continue
-            used[g] = True
-            pts, wts = _face_points(triangles[g], areas[g])
-            for poly, area in split_footprint(pts[:, :2], wts, cell=cell, min_area=min_area):
-                supports.append(Support(z, poly, area))
+        for poly, area in _plane_pieces(triangles, areas, f, lambda p: p[:, :2], cell=cell, min_area=min_area,
+                                        used=used):
+            supports.append(Support(z, poly, area))
     return supports, used
 
 
@@ -361,16 +369,9 @@ def find_planes(triangles, normals, areas, *, tol: float, cell: float, min_area:
         for o_level in _levels(off, areas[f], tol, min_area):
             g = f[o_level]
             d = float(np.average(off[o_level], weights=areas[g]))
-            comp = _components_2d(np.column_stack([centres[g] @ u, centres[g] @ v]), cell)
-            for c in np.unique(comp):
-                h = g[comp == c]
-                if areas[h].sum() < min_area:
-                    continue
-                used[h] = True
-                pts, wts = _face_points(triangles[h], areas[h])
-                for poly, _ in split_footprint(np.column_stack([pts @ u, pts @ v]), wts, cell=cell,
-                                               min_area=min_area):
-                    planes.append((n.copy(), d, poly, u, v))
+            for poly, _ in _plane_pieces(triangles, areas, g, lambda p: np.column_stack([p @ u, p @ v]),
+                                         cell=cell, min_area=min_area, used=used):
+                planes.append((n.copy(), d, poly, u, v))
     return planes, used
 
 
