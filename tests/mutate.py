@@ -34,7 +34,6 @@ import subprocess
 import sys
 import tempfile
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,6 +113,17 @@ def native_module_path() -> Path | None:
     return Path(p) if r.returncode == 0 and p else None
 
 
+def wheel_packages() -> dict[str, str]:
+    """pyproject's [tool.scikit-build.wheel.packages]: {installed path: source folder}."""
+    text = (ROOT / "pyproject.toml").read_text()
+    try:
+        import tomllib                  # Python >= 3.11
+    except ImportError:                 # 3.10: the table is plain `"a" = "b"` lines
+        table = text.split("[tool.scikit-build.wheel.packages]", 1)[-1].split("\n[", 1)[0]
+        return dict(re.findall(r'^"([^"]+)"\s*=\s*"([^"]+)"', table, flags=re.M))
+    return tomllib.loads(text)["tool"]["scikit-build"]["wheel"]["packages"]
+
+
 def make_copy(tmp: Path) -> tuple[Path, dict]:
     """The repository copy under tmp/repo, importable as installed; returns (copy root, env)."""
     repo = tmp / "repo"
@@ -121,8 +131,7 @@ def make_copy(tmp: Path) -> tuple[Path, dict]:
         dst = repo / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(ROOT / rel, dst)
-    packages = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["scikit-build"]["wheel"]["packages"]
-    for dest, src in packages.items():
+    for dest, src in wheel_packages().items():
         if dest != src:                 # e.g. psimap/exporters <- exporters
             link = repo / dest
             link.parent.mkdir(parents=True, exist_ok=True)

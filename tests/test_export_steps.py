@@ -218,6 +218,18 @@ def test_hull_vertex_limit():
     assert len(h.vertices) <= 64 and h.is_watertight and h.volume > 0.8 * s.volume
 
 
+def test_convex_shape_gets_one_capped_hull():
+    # an ellipsoid: no primitive fits it, its own hull (642 vertices) does once capped at
+    # MAX_HULL_VERTICES (what every simulator's convex collider allows cheaply)
+    e = trimesh.creation.icosphere(3, radius=1.0).apply_scale([0.06, 0.04, 0.025])
+    assert len(e.convex_hull.vertices) > 10 * C.MAX_HULL_VERTICES
+    c = C.collision_geometry(e)
+    assert c.kind == "hull" and c.hull_count == 1 and c.error <= c.tolerance
+    hull = c.parts[0]
+    assert len(hull.vertices) <= C.MAX_HULL_VERTICES and hull.is_watertight and hull.is_convex
+    assert 0.9 * e.volume < hull.volume < 1.1 * e.volume
+
+
 def test_collider_stays_out_of_neighbour_colliders():
     # a box whose neighbour's collider reaches 6 mm into it (two colliders, each within tolerance
     # of meshes that touch): without obstacles the box primitive fits; with them it is not a
