@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.psimap-installed
 NATIVE_SRC := $(wildcard psimap/render/csrc/*) CMakeLists.txt pyproject.toml
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench mutate clean
 
 install: $(STAMP)
 
@@ -27,6 +27,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests
+
+# Not part of CI: applies every mutation in tests/mutations.md to a copy of the tree and reports
+# any the tests do not catch (tests/mutate.py; `$(PY) tests/mutate.py M07` runs one).
+mutate: $(STAMP)
+	$(PY) tests/mutate.py
 
 bench: $(STAMP)
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

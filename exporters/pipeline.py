@@ -137,7 +137,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
             scene = scene.nudged(report["check"]["nudges"])
         # after the check: it may have pinned objects static
         report["objects"] = [object_entry(o, files[o.name]) for o in scene.objects]
-        report["outcome"] = export_outcome(all_objs, scene.objects, min_dynamic)
+        report["outcome"] = export_outcome(all_objs, scene.objects, min_dynamic, static_classes)
         if background is not None:
             report["background"] = object_entry(background, files.get(background.name, {}))
         for name in fmts:
@@ -157,11 +157,14 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     return report
 
 
-def export_outcome(found, exported, min_dynamic: float = MIN_DYNAMIC) -> dict:
+def export_outcome(found, exported, min_dynamic: float = MIN_DYNAMIC, static_classes=None) -> dict:
     """What came of the things the map found (`found`: every extracted object, skipped ones too;
     `exported`: the export's objects after the settle check): how many are dynamic, and why the
-    others are not. Things static by class (furniture, the user's --static-classes) are not asked
-    to move. passed: at least `min_dynamic` of the others are dynamic (True when there are none)."""
+    others are not. Things of a static class (furniture, the user's --static-classes; skipped ones
+    too) are not asked to move. passed: at least `min_dynamic` of the others are dynamic (True when
+    there are none)."""
+    from psimap.exporters.physics import is_static_class
+
     by_name = {o.name: o for o in exported}
     counts = {"things": 0, "dynamic": 0, "static_class": 0, "pinned": 0, "little_evidence": 0, "skipped": 0}
     why = {}
@@ -172,7 +175,7 @@ def export_outcome(found, exported, min_dynamic: float = MIN_DYNAMIC) -> dict:
         o = by_name.get(o.name, o)
         if o.role is Role.DYNAMIC:
             counts["dynamic"] += 1
-        elif o.reason is Reason.STATIC_CLASS:
+        elif o.reason is Reason.STATIC_CLASS or is_static_class(o.label, static_classes):
             counts["static_class"] += 1
         elif o.reason is Reason.UNSTABLE:
             counts["pinned"] += 1

@@ -174,15 +174,44 @@ def test_coco_panoptic_folder_and_missing_frames(data, capsys, tmp_path):
     assert rc == 0 and "per-frame PQ" in out and "1 frames had no prediction" in out
 
 
-def test_plot_png(data, capsys, tmp_path):
+def test_plot_png(data, capsys, tmp_path, monkeypatch):
+    """--plot draws the numbers the metrics report: read back from the figure, not the PNG bytes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    figs, close = [], plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig) or close(fig))
+    # geometry: a prediction that misses one box, so precision and recall differ
+    mesh, _, finst = scene_mesh()
+    pred = tmp_path / "pred.ply"
+    mesh.submesh([np.flatnonzero(finst != 2)], append=True).export(pred)
     png = tmp_path / "geom.png"
-    rc, out, err = run(capsys, data / "gt" / "mesh.ply", data, "--plot", png, "--samples", "5000")
+    rc, out, err = run(capsys, pred, data, "--plot", png, "--samples", "5000", "--json")
     assert rc == 0, err
-    assert "accuracy" in out and png.read_bytes()[:4] == b"\x89PNG"
+    g = json.loads(out)["geometry"]
+    assert g["precision"] > 0.99 and g["recall"] < 0.95
+    assert np.asarray(Image.open(png).convert("RGB")).std() > 20
+    curves = {ln.get_label(): ln.get_data() for ln in figs[-1].axes[0].get_lines()}
+    for key, name in (("precision", "precision"), ("recall", "recall"), ("f1", "F1")):
+        x, y = curves[name]
+        assert np.interp(g["threshold"] * 100, x, y) == pytest.approx(g[key], abs=0.02), name
+    # panoptic: one frame without a prediction, so PQ (lower IoU) and RQ differ per class
     png2 = tmp_path / "pan.png"
-    folder = write_coco(tmp_path / "coco", list(gt_labels(data)))
+    folder = write_coco(tmp_path / "coco", gts := list(gt_labels(data)), skip={gts[1][0]})
+    rc, out, err = run(capsys, folder, data, "--json")
+    per = json.loads(out)["panoptic"]["per_class"]
     rc, out, err = run(capsys, folder, data, "--plot", png2)
-    assert rc == 0 and png2.read_bytes()[:4] == b"\x89PNG"
+    assert rc == 0, err
+    assert np.asarray(Image.open(png2).convert("RGB")).std() > 20
+    ax = figs[-1].axes[0]
+    assert [c.get_label() for c in ax.containers] == ["PQ", "SQ", "RQ", "IoU"]
+    for bars, key in zip(ax.containers, ("pq", "sq", "rq", "iou")):
+        np.testing.assert_allclose([b.get_height() for b in bars], [per[c][key] for c in sorted(per)],
+                                   atol=1e-12, err_msg=key)
+    assert any(per[c]["pq"] < per[c]["rq"] for c in per), per     # the bars can tell the metrics apart
 
 
 def test_bad_inputs_give_one_line_errors(data, capsys, tmp_path):
@@ -207,7 +236,7 @@ def test_bad_inputs_give_one_line_errors(data, capsys, tmp_path):
     other = {f"other_{i}": (sem, inst) for i, (_, sem, inst) in enumerate(gts)}
     error(write_sem_inst(tmp_path / "other", other), data, match="no predicted frame matches")
     (tmp_path / "bad.ckpt").write_bytes(b"not a checkpoint")
-    error(tmp_path / "bad.ckpt", data, match="")
+    error(tmp_path / "bad.ckpt", data, match="bad.ckpt: not a psimap scene checkpoint")
     # DATA without ground truth
     import shutil
 

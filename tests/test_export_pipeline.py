@@ -161,14 +161,17 @@ def test_cli_export_and_bad_checkpoints(ckpt, tmp_path, capsys):
     bad.write_bytes(ckpt.read_bytes()[:200])
     rc = main(["export", str(bad), "--out", str(tmp_path / "o2")])
     err = capsys.readouterr().err
-    assert rc == 1 and len(err.strip().splitlines()) == 1 and "error" in err
+    # a clean error naming the file, not a crash ("internal error: RuntimeError: PytorchStreamReader...")
+    assert rc == 1 and len(err.strip().splitlines()) == 1 and err.startswith("psimap export: error: ")
+    assert "internal error" not in err and f"{bad}: truncated or corrupt checkpoint" in err
     foreign = tmp_path / "foreign.ckpt"
     import torch
 
     torch.save({"weights": torch.zeros(3)}, foreign)
     rc = main(["export", str(foreign), "--out", str(tmp_path / "o3")])
     err = capsys.readouterr().err
-    assert rc == 1 and len(err.strip().splitlines()) == 1
+    assert rc == 1 and len(err.strip().splitlines()) == 1 and "internal error" not in err
+    assert f"{foreign}: not a psimap scene checkpoint" in err
     bad_table = tmp_path / "d.json"
     bad_table.write_text('{"box": "heavy"}')
     rc = main(["export", str(ckpt), "--densities", str(bad_table), "--out", str(tmp_path / "o4")])

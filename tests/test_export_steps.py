@@ -48,6 +48,27 @@ def test_density_table_file(tmp_path):
         P.load_density_table(f)
 
 
+def test_mass_properties_of_an_asymmetric_solid_match_trimesh():
+    # an L (centroid != vertex mean, off-diagonal inertia) turned and moved far from the origin:
+    # a box alone cannot tell the centroid from the vertex mean or a wrong parallel-axis sign
+    L = trimesh.boolean.union([trimesh.creation.box(extents=[0.3, 0.06, 0.06]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([0.12, 0, 0.18])],
+                              engine="manifold")
+    rng = np.random.default_rng(3)
+    for _ in range(8):
+        m = L.copy().apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+        m.apply_translation(rng.uniform(-50, 50, 3))
+        ph = P.mass_properties(m, "thing", density=640.0)
+        assert ph.mass == pytest.approx(640.0 * m.volume, rel=1e-9)
+        assert np.linalg.norm(ph.com - m.vertices.mean(0)) > 0.01
+        np.testing.assert_allclose(ph.com, m.center_mass, atol=1e-9)
+        np.testing.assert_allclose(ph.inertia, 640.0 * m.moment_inertia, rtol=1e-6, atol=1e-12)
+        # principal frame: a proper rotation that diagonalises the inertia
+        R = ph.principal_axes
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        np.testing.assert_allclose(R @ np.diag(ph.principal_inertia) @ R.T, ph.inertia, rtol=1e-9, atol=1e-12)
+
+
 def test_mass_of_open_mesh_is_an_error():
     plane = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
     with pytest.raises(PsimapError, match="no volume"):
@@ -96,7 +117,7 @@ def test_repair_fixes_inverted_and_drops_floaters():
     assert any("floating" in s for s in r.steps)
 
 
-def test_repair_closes_open_bottom_and_rejects_nonmanifold_leftovers():
+def test_repair_closes_open_bottom_and_drops_a_nonmanifold_fin():
     b = _box()
     keep = b.face_normals[:, 2] > -0.5          # remove the bottom: an object scanned on a table
     open_box = trimesh.Trimesh(b.vertices, b.faces[keep])
@@ -107,8 +128,12 @@ def test_repair_closes_open_bottom_and_rejects_nonmanifold_leftovers():
     fin_v = np.vstack([b.vertices, [[0.05, 0.05, 0.3]]])
     e = b.edges_unique[0]
     nm = trimesh.Trimesh(fin_v, np.vstack([b.faces, [[e[0], e[1], len(b.vertices)]]]), process=False)
+    assert not nm.is_watertight
     r = repair_mesh(nm)
-    assert (r.ok and r.watertight and r.mesh.volume > 0) or (not r.ok and r.reason)
+    # the fin is a separate sliver of area: dropped as a floater, the box comes back exactly
+    assert r.ok and r.watertight and r.steps == ["removed 1 floating component(s)"]
+    assert len(r.mesh.faces) == 12 and r.mesh.volume == pytest.approx(1e-3, rel=1e-9)
+    np.testing.assert_allclose(r.mesh.bounds, b.bounds, atol=1e-12)
 
 
 # ---------------------------------------------------------------- decimation
@@ -191,6 +216,18 @@ def test_hull_vertex_limit():
     s = trimesh.creation.icosphere(4, radius=0.1)
     h = C.limit_hull_vertices(s, 64)
     assert len(h.vertices) <= 64 and h.is_watertight and h.volume > 0.8 * s.volume
+
+
+def test_convex_shape_gets_one_capped_hull():
+    # an ellipsoid: no primitive fits it, its own hull (642 vertices) does once capped at
+    # MAX_HULL_VERTICES (what every simulator's convex collider allows cheaply)
+    e = trimesh.creation.icosphere(3, radius=1.0).apply_scale([0.06, 0.04, 0.025])
+    assert len(e.convex_hull.vertices) > 10 * C.MAX_HULL_VERTICES
+    c = C.collision_geometry(e)
+    assert c.kind == "hull" and c.hull_count == 1 and c.error <= c.tolerance
+    hull = c.parts[0]
+    assert len(hull.vertices) <= C.MAX_HULL_VERTICES and hull.is_watertight and hull.is_convex
+    assert 0.9 * e.volume < hull.volume < 1.1 * e.volume
 
 
 def test_collider_stays_out_of_neighbour_colliders():

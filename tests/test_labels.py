@@ -240,7 +240,8 @@ def test_cli_labels(scene, tmp_path, capsys):
     assert len(err) == 1 and "nope.ckpt" in err[0]
     (tmp_path / "bad.ckpt").write_bytes(b"not a checkpoint")
     assert main(["labels", str(tmp_path / "bad.ckpt"), str(data), "--out", str(tmp_path / "x")]) == 1
-    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"psimap labels: error: {tmp_path / 'bad.ckpt'}: not a psimap scene checkpoint (not a torch zip archive)"
     assert main(["labels", str(ckpt), str(tmp_path / "nodata"), "--out", str(tmp_path / "x")]) == 1
     assert "nodata" in capsys.readouterr().err
     assert main(["labels", str(ckpt), str(data), "--out", str(tmp_path / "x"), "--topk", "-1"]) == 1

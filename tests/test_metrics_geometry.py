@@ -187,8 +187,39 @@ def test_sampling_is_area_weighted():
     assert xb.mean() == pytest.approx(0.0, abs=0.02) and xb.var() == pytest.approx(1 / 3, rel=0.03)
 
 
-def test_plot_geometry_writes_a_png(tmp_path):
-    d = surface_distances(quad(0.02), quad(0.0), max_samples=2000)
+def plotted_figures(monkeypatch) -> list:
+    """Figures handed to plt.close (what a plot function drew), kept for inspection."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figs, real = [], plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig) or real(fig))
+    return figs
+
+
+def test_plot_geometry_draws_the_metrics_curves(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from psimap.metrics.geometry import summarize
+
+    # a prediction covering a quarter of the GT square, 2 cm above it: precision 1, recall ~0.28
+    d = surface_distances(quad(0.02, half=0.5), quad(0.0, half=1.0), max_samples=4000)
+    m = summarize(d, 0.05)
+    assert m["precision"] == 1.0 and 0.2 < m["recall"] < 0.35
+    figs = plotted_figures(monkeypatch)
     out = tmp_path / "geom.png"
     plot_geometry(d, out, 0.05)
-    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    img = np.asarray(Image.open(out).convert("RGB"))
+    assert img.shape == (400, 1000, 3) and img.std() > 20            # 10 x 4 in at 100 dpi, not blank
+    (fig,) = figs
+    curves = {ln.get_label(): ln for ln in fig.axes[0].get_lines() if not ln.get_label().startswith("_")}
+    assert sorted(curves) == ["F1", "precision", "recall"]
+    for key, name in (("precision", "precision"), ("recall", "recall"), ("f1", "F1")):
+        x, y = curves[name].get_data()                                # x in cm
+        assert np.interp(5.0, x, y) == pytest.approx(m[key], abs=0.02), name
+        assert np.all(np.diff(y) >= -1e-12) or name == "F1"          # P and R grow with the threshold
+    # the histograms count every sample once (values beyond the axis go to the last bin)
+    bars = fig.axes[1].patches
+    assert sum(b.get_height() for b in bars) == len(d.pred_to_gt) + len(d.gt_to_pred)

@@ -1,5 +1,6 @@
 """Panoptic building blocks: Hungarian matching, affinity, query pruning, COCO panoptic encoding."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ import torch
 from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, iom_matrix, useless_queries
 from psimap.panoptic.coco import STUFF_OFFSET, decode_rgb, encode_rgb, write_coco_panoptic
 from psimap.panoptic.matching import hungarian_match, masks_from_ids, matched_mask_loss
-from psimap.panoptic.queries import InstanceQueries, init_from_points
+from psimap.panoptic.queries import InstanceQueries, init_from_points, positional_encoding
 
 
 def _blocks(h=12, w=12):
@@ -86,14 +87,38 @@ def test_frustum_attention_shapes_and_gradients():
     feat, mean, cov = init_from_points([torch.randn(20, 3, generator=g) for _ in range(4)], 8, generator=g)
     q = InstanceQueries(feat, mean, cov, scene_scale=2.0)
     sf = torch.randn(30, 8, generator=g, requires_grad=True)
-    out = q.attend(sf, torch.randn(30, 3, generator=g))
+    pos = torch.randn(30, 3, generator=g)
+    out = q.attend(sf, pos)
     assert out.shape == (4, 8)
     assert torch.allclose(out, q.feature)                    # gate starts closed
-    (out.sum() + q.gate * 0).backward()
+
+    def oracle(feat, pos):
+        """feature + tanh(gate) softmax_V(Wq f . Wk (f_g + PE(x_g)) / sqrt(d)) Wv f_g, by hand."""
+        keys = feat + q.pos_proj(positional_encoding(pos, q.n_freqs, q.scene_scale))
+        logits = q.w_q(q.feature) @ q.w_k(keys).T / math.sqrt(q.w_q.out_features)     # [Q, V]
+        w = torch.exp(logits - logits.max(dim=1, keepdim=True).values)
+        w = w / w.sum(dim=1, keepdim=True)                  # each query's weights over the surfels
+        return q.feature + torch.tanh(q.gate) * (w @ q.w_v(feat)), w
+
+    # closed gate: the features pass through, and the gate alone learns (d out / d gate = upd)
+    out.sum().backward()
+    _, w = oracle(sf, pos)
+    upd = (w @ q.w_v(sf)).detach()
+    assert torch.allclose(q.gate.grad, upd.sum().reshape(q.gate.shape), rtol=1e-5, atol=1e-6)
+    assert torch.equal(q.feature.grad, torch.ones_like(q.feature))
+    assert sf.grad is None or float(sf.grad.abs().max()) == 0.0
     with torch.no_grad():
         q.gate.fill_(1.0)
-    out2 = q.attend(sf, torch.randn(30, 3, generator=g))
-    assert not torch.allclose(out2, q.feature)
+    q.zero_grad()
+    out2 = q.attend(sf, pos)
+    want, w = oracle(sf, pos)
+    assert torch.allclose(out2, want, atol=1e-6) and not torch.allclose(out2, q.feature)
+    assert torch.allclose(w.sum(1), torch.ones(4)) and float(w.detach().min()) > 0
+    # open gate: the visible surfels' features and every projection receive gradients
+    out2.pow(2).sum().backward()
+    for name, t in [("surfel features", sf), ("w_q", q.w_q.weight), ("w_k", q.w_k.weight),
+                    ("w_v", q.w_v.weight), ("pos_proj", q.pos_proj.weight), ("gate", q.gate)]:
+        assert t.grad is not None and float(t.grad.abs().max()) > 1e-6, name
     assert q.attend(sf[:0], torch.zeros(0, 3)).shape == (4, 8)   # nothing visible
 
 

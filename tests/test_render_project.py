@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
+from posed import random_c2w, to_world, viewmat as viewmat_of
 
 from psimap.render import project_surfels
 from psimap.render.binning import bin_surfels
@@ -18,15 +20,23 @@ def camera(dtype=torch.float64):
     return torch.eye(4, dtype=dtype), K
 
 
-def test_facing_surfel_quantities_and_boxes():
+@pytest.mark.parametrize("pose_seed", [None, 0, 1, 2])
+def test_facing_surfel_quantities_and_boxes(pose_seed):
+    """The same camera-frame surfel seen by the identity camera and, moved into the world with the
+    camera, by rigid cameras: every stage-1 quantity is a camera-frame one and must not change."""
     viewmat, K = camera()
     means = torch.tensor([[0.1, -0.05, 2.0]], dtype=torch.float64)
     quats = torch.tensor([[0.0, 1.0, 0.0, 0.0]], dtype=torch.float64)     # 180 deg about x: normal -z
     scales = torch.tensor([[0.1, 0.05]], dtype=torch.float64)
-    p = project_surfels(means, quats, scales, torch.tensor([0.5], dtype=torch.float64), viewmat, K, W, H)
+    m, q = means, quats
+    if pose_seed is not None:
+        c2w = random_c2w(pose_seed)
+        m, q = to_world(c2w, means, quats)
+        viewmat = viewmat_of(c2w)
+    p = project_surfels(m, q, scales, torch.tensor([0.5], dtype=torch.float64), viewmat, K, W, H)
     cx, cy = 30 + F * 0.1 / 2, 20 - F * 0.05 / 2
     assert torch.allclose(p.center, torch.tensor([[cx, cy]], dtype=torch.float64))
-    assert p.depth_key.item() == 2.0 and bool(p.valid.item())
+    assert p.depth_key.item() == pytest.approx(2.0, abs=1e-12) and bool(p.valid.item())
     # T maps (u, v, 1) to (x z, y z, z): column 2 is K mu_c, columns 0/1 the scaled axes.
     assert torch.allclose(p.T[0, :, 2], K @ means[0])
     assert torch.allclose(p.T[0, :, 0], torch.tensor([F * 0.1, 0, 0], dtype=torch.float64))

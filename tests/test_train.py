@@ -258,7 +258,7 @@ def test_losses():
     assert float(L.depth_l1(torch.zeros(3, 3), torch.ones(3, 3), v & False)) == 0.0
 
 
-def test_cli_train_mesh_and_errors(scene_frames, tmp_path):
+def test_cli_train_mesh_and_errors(scene_frames, tmp_path, capsys):
     import trimesh
 
     from psimap.cli import main
@@ -278,9 +278,15 @@ def test_cli_train_mesh_and_errors(scene_frames, tmp_path):
     truth = trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]
     d = cKDTree(truth).query(m.vertices)[0]
     assert np.median(d) < 0.02, np.median(d)
+    capsys.readouterr()
     assert main(["train", str(tmp_path / "missing"), "--out", str(tmp_path / "x.ckpt")]) == 1
+    assert capsys.readouterr().err.strip() == f"psimap train: error: no such data folder: {tmp_path / 'missing'}"
     (tmp_path / "bad.ckpt").write_bytes(ckpt.read_bytes()[:1000])
     assert main(["mesh", str(tmp_path / "bad.ckpt"), "--out", str(tmp_path / "y.ply")]) == 1
+    # a clean error naming the file, not a crash ("internal error: RuntimeError: PytorchStreamReader...")
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("psimap mesh: error: ") and len(err.splitlines()) == 1, err
+    assert "internal error" not in err and f"{tmp_path / 'bad.ckpt'}: truncated or corrupt checkpoint" in err
     assert not (tmp_path / "x.ckpt").exists() and not (tmp_path / "y.ply").exists()
 
 

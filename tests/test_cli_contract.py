@@ -1,0 +1,241 @@
+"""The command-line contract, end to end through the installed `psimap` console script (the entry
+point pip wrote into the venv, not `psimap.cli.main` in-process): every subcommand and every
+documented option at least once on tiny data, the exit codes (0 ok, 1 error, 2 failed check or
+usage), one-line errors and --debug tracebacks.
+
+`CALLS` is the whole list of invocations; `test_every_documented_option_is_exercised` checks it
+against the options dataclasses, so a new option fails the suite until a call here uses it. The
+calls run once per module, two at a time (independent ones in parallel on CI's 2 cores).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+PSIMAP = Path(sys.executable).parent / "psimap"
+
+# {name: argv}; "{tmp}" is the module's temp folder. Stage 1 needs nothing, stage 2 the demo's
+# scene and checkpoint.
+CALLS1 = {
+    "version": ["--version"],
+    "no_command": [],
+    "help": ["--help"],
+    "generate": ["generate", "{tmp}/gen", "--seed", "4", "--frames", "3", "--width", "40", "--height", "30",
+                 "--objects", "5", "--noise", "0.3", "--lidar", "--pose-noise", "0.01"],
+    "demo": ["demo", "--out", "{tmp}/demo", "--seed", "2", "--frames", "4", "--width", "48", "--height", "36",
+             "--iters", "15", "--panoptic-iters", "10"],
+    "bad_format": ["export", "{tmp}/none.ckpt", "--format", "fbx"],
+}
+CALLS2 = {
+    # resumed from the demo on a copy of its scene without pseudo-labels (no 400-step panoptic phase)
+    "train": ["train", "{tmp}/nolabels", "--out", "{tmp}/resumed.ckpt", "--resume", "{tmp}/demo/scene.ckpt",
+              "--iters", "5", "--seed", "3", "--no-prior", "--fast"],
+    "mesh": ["mesh", "{tmp}/demo/scene.ckpt", "--out", "{tmp}/mesh.ply", "--voxel", "0.04"],
+    "export_all": ["export", "{tmp}/demo/scene.ckpt", "--format", "all", "--out", "{tmp}/e_all",
+                   "--completion", "auto", "--densities", "{tmp}/densities.json", "--static-classes", "none",
+                   "--no-pin-unstable"],
+    "export_usd": ["export", "{tmp}/demo/scene.ckpt", "--format", "usd", "--out", "{tmp}/e_usd",
+                   "--completion", "none", "--no-check", "--dynamic-all"],
+    "export_glb": ["export", "{tmp}/demo/scene.ckpt", "--format", "glb", "--out", "{tmp}/e_glb",
+                   "--completion", "none", "--no-check"],
+    "eval": ["eval", "{tmp}/demo/scene.ckpt", "{tmp}/demo/scene", "--json", "--threshold", "0.1",
+             "--samples", "20000", "--seed", "3", "--plot", "{tmp}/eval.png"],
+    "labels": ["labels", "{tmp}/demo/scene.ckpt", "{tmp}/demo/scene", "--out", "{tmp}/labels", "--topk", "2"],
+    "bad_ckpt": ["mesh", "{tmp}/bad.ckpt", "--out", "{tmp}/bad.ply"],
+    "bad_ckpt_debug": ["export", "{tmp}/bad.ckpt", "--out", "{tmp}/e_bad", "--debug"],
+}
+DENSITY = {"cabinet": 321.0}
+# Options a dedicated test file exercises through the console script instead (flag -> where).
+ELSEWHERE = {"overwrite": "tests/test_output_safety.py"}
+
+
+def _run(argv, tmp: Path) -> subprocess.CompletedProcess:
+    args = [a.format(tmp=tmp) for a in argv]
+    return subprocess.run([str(PSIMAP), *args], capture_output=True, text=True, timeout=600, cwd=tmp)
+
+
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory) -> tuple[dict, Path]:
+    if not PSIMAP.exists():
+        pytest.fail(f"the console script {PSIMAP} is missing: install psimap (make install)")
+    tmp = tmp_path_factory.mktemp("cli")
+    (tmp / "bad.ckpt").write_bytes(b"PK\x03\x04 truncated")
+    (tmp / "densities.json").write_text(json.dumps(DENSITY))
+    res = {}
+    with ThreadPoolExecutor(2) as pool:
+        res.update(zip(CALLS1, pool.map(lambda a: _run(a, tmp), CALLS1.values())))
+        assert res["demo"].returncode == 0, res["demo"].stderr[-2000:]
+        _strip_labels(tmp / "demo" / "scene", tmp / "nolabels")
+        res.update(zip(CALLS2, pool.map(lambda a: _run(a, tmp), CALLS2.values())))
+    return res, tmp
+
+
+def _strip_labels(src: Path, dst: Path) -> None:
+    """A copy of a scene folder whose frames list no pseudo-labels (the format allows that)."""
+    import shutil
+
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("semantic", "instance"))
+    meta = json.loads((dst / "transforms.json").read_text())
+    for f in meta["frames"]:
+        f.pop("semantic_file_path", None)
+        f.pop("instance_file_path", None)
+    (dst / "transforms.json").write_text(json.dumps(meta))
+
+
+def ok(res, name) -> subprocess.CompletedProcess:
+    r = res[name]
+    assert r.returncode == 0, f"{name}: rc {r.returncode}\n{r.stderr[-3000:]}"
+    return r
+
+
+def test_every_documented_option_is_exercised():
+    from psimap.cli import COMMANDS
+
+    used: dict[str, set] = {}
+    for argv in [*CALLS1.values(), *CALLS2.values()]:
+        cmd = next((a for a in argv if a in COMMANDS), None)
+        used.setdefault(cmd, set()).update(a for a in argv if a.startswith("--"))
+    missing = []
+    for name, (cls, _, _) in COMMANDS.items():
+        assert name in used, f"no call runs `psimap {name}`"
+        for f in dataclasses.fields(cls):
+            flag = "--" + f.name.replace("_", "-")
+            if not f.metadata.get("positional") and flag not in used[name] and f.name not in ELSEWHERE:
+                missing.append(f"psimap {name} {flag}")
+    assert not missing, f"options no call exercises: {missing}"
+    assert {"--version", "--help", "--debug"} <= set().union(*used.values())
+
+
+def test_version_help_and_no_command(ran):
+    from psimap import __version__
+    from psimap.cli import COMMANDS
+
+    res, _ = ran
+    assert ok(res, "version").stdout == f"psimap {__version__}\n"
+    r = res["no_command"]
+    assert r.returncode == 2 and r.stdout.startswith("usage: psimap") and r.stderr == ""
+    text = ok(res, "help").stdout
+    for name in COMMANDS:
+        assert name in r.stdout and name in text, name
+    r = res["bad_format"]                       # argparse: usage error, exit 2, nothing written
+    assert r.returncode == 2 and "invalid choice: 'fbx'" in r.stderr
+
+
+def test_generate_options(ran):
+    from psimap.data import load
+    from psimap.data.scene_format import read_gt
+    from psimap.data.synthetic import generate
+
+    res, tmp = ran
+    out = ok(res, "generate").stdout
+    assert "3 frames 40x30" in out and ", 5 objects (" in out
+    errors = [int(w) for w in out.split("pseudo-label errors:")[1].split("over")[0].split() if w.isdigit()]
+    assert sum(errors) > 0                                   # --noise 0.3 corrupted some labels
+    seq = load(tmp / "gen")
+    assert len(seq) == 3 and seq[0].rgb.shape == (30, 40, 3) and seq[0].lidar is not None
+    assert len(read_gt(tmp / "gen").instances) == 5
+    # --pose-noise: the written poses are the true ones (same seed, no noise) perturbed by ~1 cm
+    generate(tmp / "gen_exact", seed=4, frames=3, width=40, height=30, n_objects=5, label_noise=0.3)
+    exact = load(tmp / "gen_exact")
+    shift = max(float(np.linalg.norm(a.c2w[:3, 3] - b.c2w[:3, 3])) for a, b in zip(seq, exact))
+    assert 0.002 < shift < 0.08
+    assert np.array_equal(seq[0].depth, exact[0].depth)         # only the poses were perturbed
+
+
+def test_demo_through_the_console_script(ran):
+    res, tmp = ran
+    out = ok(res, "demo").stdout
+    assert "psimap demo: done" in out and "simulation check passed" in out
+    for f in ("scene.ckpt", "eval.json", "scene_preview.png", "export/scene.xml", "export/scene.usda",
+              "export/scene.glb", "export/report.json"):
+        assert (tmp / "demo" / f).is_file(), f
+    assert "4 frames 48x36" in out
+
+
+def test_train_resume_no_prior_fast(ran):
+    import psimap
+
+    res, tmp = ran
+    out = ok(res, "train").stdout
+    before = psimap.load(tmp / "demo" / "scene.ckpt")
+    after = psimap.load(tmp / "resumed.ckpt")
+    steps = int(before.metrics["steps"]) + 5                   # --resume continues the count
+    assert f"wrote {tmp / 'resumed.ckpt'}: {len(after)} surfels, {steps} steps" in out
+    assert after.metrics["steps"] == steps and len(after) == len(before)
+    assert after.config["use_prior"] is False and after.config["deterministic"] is False
+    assert after.config["seed"] == 3 and after.config["iters"] == 5
+    assert "resuming from" in res["train"].stderr and "SOGMM" not in res["train"].stderr
+
+
+def test_mesh_voxel(ran):
+    import trimesh
+
+    res, tmp = ran
+    out = ok(res, "mesh").stdout
+    assert "(voxel 4.00 cm)" in out
+    mesh = trimesh.load(tmp / "mesh.ply")
+    assert len(mesh.faces) > 100 and f"{len(mesh.faces)} faces" in out
+
+
+def test_export_formats_and_options(ran):
+    res, tmp = ran
+    # all formats, completion, the density table, no static classes, no pinning: exit 0 or 2 as the check says
+    r = res["export_all"]
+    rep = json.loads((tmp / "e_all" / "report.json").read_text())
+    assert r.returncode == (0 if rep["check"]["passed"] else 2), r.stderr
+    assert {"scene.xml", "scene.usda", "scene.glb"} <= {p.name for p in (tmp / "e_all").iterdir()}
+    assert rep["format"] == ["glb", "mjcf", "usd"] and rep["check"]["pinned"] == {}
+    cab = [o for o in rep["objects"] if o["class"] == "cabinet"]
+    assert cab and all(not o["static"] for o in cab)           # --static-classes none
+    assert all(o["physics"]["density_kg_m3"] == DENSITY["cabinet"] for o in cab)
+    assert "completion_method" in cab[0] and f"exported {len(rep['objects'])} object(s)" in r.stdout
+    # one format each, no check
+    for name, fmt, scene in (("export_usd", "usd", "scene.usda"), ("export_glb", "glb", "scene.glb")):
+        out = ok(res, name).stdout
+        rep = json.loads((tmp / f"e_{fmt}" / "report.json").read_text())
+        files = {p.name for p in (tmp / f"e_{fmt}").iterdir()}
+        assert scene in files and not ({"scene.xml", "scene.usda", "scene.glb"} - {scene}) & files, name
+        assert "check" not in rep and "simulation check" not in out and rep["format"] == [fmt]
+        assert all(not o["completed"] for o in rep["objects"])   # --completion none
+    rep = json.loads((tmp / "e_usd" / "report.json").read_text())
+    assert rep["objects"] and all(not o["static"] for o in rep["objects"])   # --dynamic-all
+    rep = json.loads((tmp / "e_glb" / "report.json").read_text())
+    assert all(o["static"] for o in rep["objects"] if o["class"] == "cabinet")  # the default rule
+
+
+def test_eval_options(ran):
+    res, tmp = ran
+    g = json.loads(ok(res, "eval").stdout)["geometry"]
+    demo = json.loads((tmp / "demo" / "eval.json").read_text())["geometry"]
+    assert g["threshold"] == 0.1 and g["f1"] >= demo["f1"]    # a looser threshold than the demo's 5 cm
+    assert g["n_pred_points"] <= 20000 and g["n_gt_points"] <= 20000
+    # a checkpoint with labels gets both plots, named after --plot
+    assert (tmp / "eval_geometry.png").stat().st_size > 10_000 and (tmp / "eval_panoptic.png").is_file()
+
+
+def test_labels_topk(ran):
+    from psimap.cli import main
+
+    res, tmp = ran
+    ok(res, "labels")
+    meta = json.loads((tmp / "labels" / "panoptic.json").read_text())
+    assert len(meta["annotations"]) == 4 and len(list((tmp / "labels").rglob("*.png"))) == 4
+    assert main(["eval", str(tmp / "labels"), str(tmp / "demo" / "scene"), "--json"]) == 0
+
+
+def test_errors_are_one_line_and_debug_shows_the_traceback(ran):
+    res, tmp = ran
+    r = res["bad_ckpt"]
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr == f"psimap mesh: error: {tmp / 'bad.ckpt'}: truncated or corrupt checkpoint (RuntimeError)\n"
+    r = res["bad_ckpt_debug"]
+    assert r.returncode == 1 and "Traceback (most recent call last)" in r.stderr
+    assert "psimap.PsimapError: " in r.stderr and "truncated or corrupt checkpoint" in r.stderr
+    assert not (tmp / "bad.ply").exists() and not (tmp / "e_bad").exists()
