@@ -29,8 +29,9 @@ CALLS1 = {
     "help": ["--help"],
     "generate": ["generate", "{tmp}/gen", "--seed", "4", "--frames", "3", "--width", "40", "--height", "30",
                  "--objects", "5", "--noise", "0.3", "--lidar", "--pose-noise", "0.01"],
-    "demo": ["demo", "--out", "{tmp}/demo", "--seed", "2", "--frames", "4", "--width", "48", "--height", "36",
-             "--iters", "15", "--panoptic-iters", "10"],
+    # the smallest demo whose export passes its check and its outcome (tests/test_cli_generate_demo.py)
+    "demo": ["demo", "--out", "{tmp}/demo", "--seed", "1", "--frames", "8", "--width", "64", "--height", "48",
+             "--iters", "100", "--panoptic-iters", "20"],
     "bad_format": ["export", "{tmp}/none.ckpt", "--format", "fbx"],
 }
 CALLS2 = {
@@ -40,9 +41,9 @@ CALLS2 = {
     "mesh": ["mesh", "{tmp}/demo/scene.ckpt", "--out", "{tmp}/mesh.ply", "--voxel", "0.04"],
     "export_all": ["export", "{tmp}/demo/scene.ckpt", "--format", "all", "--out", "{tmp}/e_all",
                    "--completion", "auto", "--densities", "{tmp}/densities.json", "--static-classes", "none",
-                   "--no-pin-unstable"],
+                   "--no-pin-unstable", "--up", "+z"],
     "export_usd": ["export", "{tmp}/demo/scene.ckpt", "--format", "usd", "--out", "{tmp}/e_usd",
-                   "--completion", "none", "--no-check", "--dynamic-all"],
+                   "--completion", "none", "--no-check", "--dynamic-all", "--min-dynamic", "0"],
     "export_glb": ["export", "{tmp}/demo/scene.ckpt", "--format", "glb", "--out", "{tmp}/e_glb",
                    "--completion", "none", "--no-check"],
     "eval": ["eval", "{tmp}/demo/scene.ckpt", "{tmp}/demo/scene", "--json", "--threshold", "0.1",
@@ -156,7 +157,7 @@ def test_demo_through_the_console_script(ran):
     for f in ("scene.ckpt", "eval.json", "scene_preview.png", "export/scene.xml", "export/scene.usda",
               "export/scene.glb", "export/report.json"):
         assert (tmp / "demo" / f).is_file(), f
-    assert "4 frames 48x36" in out
+    assert "8 frames 64x48" in out
 
 
 def test_train_resume_no_prior_fast(ran):
@@ -226,7 +227,7 @@ def test_labels_topk(ran):
     res, tmp = ran
     ok(res, "labels")
     meta = json.loads((tmp / "labels" / "panoptic.json").read_text())
-    assert len(meta["annotations"]) == 4 and len(list((tmp / "labels").rglob("*.png"))) == 4
+    assert len(meta["annotations"]) == 8 and len(list((tmp / "labels").rglob("*.png"))) == 8   # one per frame
     assert main(["eval", str(tmp / "labels"), str(tmp / "demo" / "scene"), "--json"]) == 0
 
 
