@@ -32,6 +32,16 @@ def orbit(n: int, radius: float, height: float, target=(0.0, 0.0, 0.0)) -> list[
             for a in np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)]
 
 
+def camera_rig(c2ws, width: int, height: int, focal: float) -> dict:
+    """The cameras of a scene (psimap.scene.Scene / checkpoint format): one pinhole of `focal`
+    pixels, principal point at the image centre, for every camera-to-world pose in c2ws [M, 4, 4];
+    named c0, c1, ..."""
+    c2ws = np.asarray(c2ws, np.float64).reshape(-1, 4, 4)
+    K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    return {"K": np.stack([K] * len(c2ws)), "c2w": c2ws, "width": int(width), "height": int(height),
+            "names": [f"c{i}" for i in range(len(c2ws))]}
+
+
 def supersample_intrinsics(K, ss: int) -> np.ndarray:
     """K [3, 3] of an image with ss x ss samples per pixel of the image K describes.
 

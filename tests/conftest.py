@@ -14,15 +14,13 @@ def ring_checkpoint(tmp_path_factory):
     path of a scene.ckpt of `meshes` (psimap.scene.scene_from_meshes) seen by `views` 96x72 cameras
     on a ring of `radius` at `height`, looking at `target`: a checkpoint for the export tests."""
     def make(meshes, instance_ids, semantic_ids, classes, colors, target, radius=0.7, height=0.55, views=8):
-        from psimap.camera import look_at
+        from psimap.camera import camera_rig, look_at
         from psimap.scene import scene_from_meshes
 
         w, h = 96, 72
-        K = np.array([[80.0, 0, w / 2], [0, 80.0, h / 2], [0, 0, 1]])
         c2ws = [look_at(np.array([radius * np.cos(a), radius * np.sin(a), height]), target)
                 for a in np.linspace(0, 2 * np.pi, views, endpoint=False)]
-        cams = {"K": np.stack([K] * views), "c2w": np.stack(c2ws), "width": w, "height": h,
-                "names": [f"c{i}" for i in range(views)]}
+        cams = camera_rig(c2ws, w, h, 80.0)
         scene = scene_from_meshes(meshes, instance_ids, semantic_ids, classes, cams, colors=colors)
         path = tmp_path_factory.mktemp("ckpt") / "scene.ckpt"
         scene.save(path)

@@ -12,7 +12,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from psimap import PsimapError
-from psimap.camera import look_at
+from psimap.camera import camera_rig, look_at
 from psimap.geometry.gravity import (estimate_up, parse_up, resolve_up, rotation_to_z_up, snap_to_axis,
                                      up_scores)
 
@@ -184,11 +184,9 @@ def _small_scene():
     table = trimesh.creation.box(extents=[1.0, 0.6, 0.05]).apply_translation([0.3, 0.1, 0.72])
     box = trimesh.creation.box(extents=[0.2, 0.14, 0.12]).apply_translation([0.3, 0.1, 0.81])
     w, h, n = 64, 48, 6
-    K = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]])
     c2ws = [look_at(np.array([1.6 * np.cos(a), 1.6 * np.sin(a), 1.5]), [0.3, 0.1, 0.7])
             for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    cams = {"K": np.stack([K] * n), "c2w": np.stack(c2ws), "width": w, "height": h,
-            "names": [f"c{i}" for i in range(n)]}
+    cams = camera_rig(c2ws, w, h, 50.0)
     return scene_from_meshes([floor, table, box], [0, 0, 5], [1, 2, 3],
                              [ClassInfo(1, "floor", False), ClassInfo(2, "table", False), ClassInfo(3, "box", True)],
                              cams, colors=[(0.5, 0.5, 0.5), (0.6, 0.4, 0.2), (0.9, 0.1, 0.1)])

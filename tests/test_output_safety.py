@@ -58,18 +58,16 @@ def box_objects():
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory):
-    from psimap.camera import look_at
+    from psimap.camera import camera_rig, look_at
     from psimap.data.frames import ClassInfo
     from psimap.scene import scene_from_meshes
 
     floor = trimesh.creation.box(extents=[1.0, 1.0, 0.02]).apply_translation([0, 0, -0.01])
     box = trimesh.creation.box(extents=[0.2, 0.14, 0.12]).apply_translation([0.1, 0.05, 0.06])
     w, h, n = 48, 36, 4
-    K = np.array([[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]])
     c2ws = [look_at(np.array([0.7 * np.cos(a), 0.7 * np.sin(a), 0.55]), [0.1, 0.05, 0.04])
             for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    cams = {"K": np.stack([K] * n), "c2w": np.stack(c2ws), "width": w, "height": h,
-            "names": [f"c{i}" for i in range(n)]}
+    cams = camera_rig(c2ws, w, h, 40.0)
     scene = scene_from_meshes([floor, box], [0, 7], [1, 2], [ClassInfo(1, "floor", False),
                                                             ClassInfo(2, "box", True)], cams)
     path = tmp_path_factory.mktemp("ckpt") / "scene.ckpt"

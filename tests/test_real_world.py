@@ -50,17 +50,14 @@ def desk_scene(desk_labelled: bool = True):
 
 def checkpoint(tmp_path_factory, *, desk_labelled=True, rotation=None):
     """A scene.ckpt of the desk scene seen from 10 views (128x96) on a half ring in front of the desk."""
-    from psimap.camera import look_at
+    from psimap.camera import camera_rig, look_at
     from psimap.scene import scene_from_meshes
 
     meshes, iids, sids, colors = desk_scene(desk_labelled)
-    w, h, n = 128, 96, 10
-    K = np.array([[100.0, 0, w / 2], [0, 100.0, h / 2], [0, 0, 1]])
     target = np.array([0.0, 0.25, DESK_TOP])
     c2ws = [look_at(np.array([1.1 * np.sin(a), 0.25 - 1.1 * np.cos(a), 1.35]), target)
-            for a in np.linspace(-1.2, 1.2, n)]
-    cams = {"K": np.stack([K] * n), "c2w": np.stack(c2ws), "width": w, "height": h,
-            "names": [f"c{i}" for i in range(n)]}
+            for a in np.linspace(-1.2, 1.2, 10)]
+    cams = camera_rig(c2ws, 128, 96, 100.0)
     scene = scene_from_meshes(meshes, iids, sids, CLASSES, cams, colors=colors)
     if rotation is not None:
         scene = scene.rotated(rotation)
@@ -214,7 +211,7 @@ def test_an_unlabelled_desk_holds_things_too(tmp_path_factory):
 
 def test_export_fails_loudly_when_most_things_are_pinned(tmp_path_factory, capsys):
     """Two things on a steep unlabelled ramp slide off and are pinned: no success to report."""
-    from psimap.camera import look_at
+    from psimap.camera import camera_rig, look_at
     from psimap.cli import main
     from psimap.scene import scene_from_meshes
 
@@ -225,11 +222,9 @@ def test_export_fails_loudly_when_most_things_are_pinned(tmp_path_factory, capsy
     boxes = [trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_transform(T).apply_translation(
         np.array([x, 0.0, 0.3]) + n_up * (0.025 + 0.05 + 0.015)) for x in (-0.2, 0.2)]   # 1.5 cm clear
     w, h, n = 96, 72, 8
-    K = np.array([[75.0, 0, w / 2], [0, 75.0, h / 2], [0, 0, 1]])
     c2ws = [look_at(np.array([1.2 * np.cos(a), 1.2 * np.sin(a), 1.0]), [0, 0, 0.3])
             for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    cams = {"K": np.stack([K] * n), "c2w": np.stack(c2ws), "width": w, "height": h,
-            "names": [f"c{i}" for i in range(n)]}
+    cams = camera_rig(c2ws, w, h, 75.0)
     scene = scene_from_meshes([floor, ramp, *boxes], [0, 0, 21, 22], [1, 0, 4, 4], CLASSES, cams)
     ckpt = tmp_path_factory.mktemp("ramp") / "scene.ckpt"
     scene.save(ckpt)
