@@ -66,11 +66,14 @@ QUICK = dict(width=96, height=72, views=10)
 @dataclass
 class Built:
     """A benchmark scene: the psimap Scene, how many things it holds, the real masses known
-    {class: kg}, and R [3, 3] taking the Z-up original to the capture's frame (identity if not turned)."""
+    {class: kg} with the convex hull volume of each such object's true mesh {class: m^3} (to tell a
+    mass error that comes from the reconstructed size from one of the density tables), and R [3, 3]
+    taking the Z-up original to the capture's frame (identity if not turned)."""
 
     scene: object
     things: int
     real_mass: dict = field(default_factory=dict)
+    hull_volume: dict = field(default_factory=dict)
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
 
 
@@ -186,7 +189,8 @@ def ycb_placements(meshes, top: float, cells=(3, 2), cell=(0.36, 0.3), gap: floa
 
 
 def ycb_scene(width: int, height: int, views: int):
-    """The six YCB scans upright on a free-standing stuff table, seen from a 270 degree arc."""
+    """(scene, {class: convex hull volume m^3 of its scan}): the six YCB scans upright on a
+    free-standing stuff table, seen from a 270 degree arc."""
     import trimesh
 
     from psimap.data.frames import ClassInfo
@@ -208,7 +212,8 @@ def ycb_scene(width: int, height: int, views: int):
     sids = [1, 2] + [3 + k for k in range(len(scans))]
     colors = [(0.45, 0.45, 0.42), (0.55, 0.36, 0.2)] + [None] * len(scans)   # scans: their texture
     cams = arc_cameras([0.0, 0.0, TABLE_TOP], 0.95, np.linspace(-2.35, 2.35, views), width, height)
-    return scene_from_meshes(meshes, iids, sids, classes, cams, colors=colors)
+    hulls = {n: float(m.convex_hull.volume) for n, m in zip(YCB_NAMES, scans)}
+    return scene_from_meshes(meshes, iids, sids, classes, cams, colors=colors), hulls
 
 
 def room_scene(work: Path, width: int, height: int, views: int):
@@ -221,7 +226,7 @@ def room_scene(work: Path, width: int, height: int, views: int):
     from psimap.data.synthetic import classes, generate
     from psimap.scene import scene_from_meshes
 
-    root = work / "room"
+    root = work / "room-capture"          # the generated frames; the export goes to work / "room"
     generate(root, seed=0, frames=views, width=width, height=height, progress=False)
     gt = read_gt(root)
     frames = read_scene(root)
@@ -259,7 +264,8 @@ def build(name: str, work: Path, *, width: int, height: int, views: int, cache: 
         ref = build("stuff-desk", work, width=width, height=height, views=views, cache=cache)
         built = Built(ref.scene.rotated(R), ref.things, rotation=R)
     elif name == "ycb-table":
-        built = Built(ycb_scene(width, height, views), len(YCB_NAMES), {n: real_mass(n) for n in YCB_NAMES})
+        scene, hulls = ycb_scene(width, height, views)
+        built = Built(scene, len(YCB_NAMES), {n: real_mass(n) for n in YCB_NAMES}, hulls)
     elif name == "room":
         built = Built(*room_scene(work, width, height, views))
     else:
@@ -294,8 +300,10 @@ def up_error_deg(report: dict, R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(found @ true / np.linalg.norm(found), -1, 1))))
 
 
-def measure(name: str, built: Built, report: dict, wall: float, cpu: float) -> dict:
-    """One scene's figures from its report.json."""
+def measure(name: str, built: Built, report: dict, out_dir: Path, wall: float, cpu: float) -> dict:
+    """One scene's figures from its report.json (out_dir: the export folder)."""
+    import trimesh
+
     out, chk, env = report["outcome"], report["check"], report["environment"] or {}
     objs = report["objects"]
     moved = sorted(set(chk["pinned"]) | set(chk["unstable"]))
@@ -319,9 +327,11 @@ def measure(name: str, built: Built, report: dict, wall: float, cpu: float) -> d
             continue
         p = o["physics"]
         lo, hi = p["mass_range_kg"]
+        mesh = trimesh.load(out_dir / o["files"]["mesh"], force="mesh", process=False)
         row["masses"].append({"object": o["class"], "model": p["mass_model"], "key": p["density_key"],
                               "real": real, "est": p["mass_kg"], "err": p["mass_kg"] / real - 1,
-                              "lo": lo, "hi": hi, "in_range": lo <= real <= hi})
+                              "lo": lo, "hi": hi, "in_range": lo <= real <= hi,
+                              "hull_ratio": float(mesh.convex_hull.volume / built.hull_volume[o["class"]])})
     missing = sorted(set(built.real_mass) - {m["object"] for m in row["masses"]})
     row["masses_missing"] = missing
     return row
@@ -340,11 +350,12 @@ def compare(ref: dict, rep: dict, R: np.ndarray) -> dict:
     def centre(o):
         return np.asarray(o["bounds"], np.float64).mean(0)
 
-    offsets = [np.linalg.norm(centre(b[n]) - M @ centre(a[n])) for n in shared]
+    offsets = [float(np.linalg.norm(centre(b[n]) - M @ centre(a[n]))) for n in shared]
     masses = [abs(b[n]["physics"]["mass_kg"] / a[n]["physics"]["mass_kg"] - 1) for n in shared]
     return {"same_objects": set(a) == set(b), "same_roles": same_roles,
             "same_outcome": ref["outcome"]["dynamic"] == rep["outcome"]["dynamic"],
             "tilt_deg": float(np.degrees(np.arccos(np.clip(M[2, 2], -1, 1)))),
+            "yaw_deg": float(np.degrees(np.arctan2(M[1, 0], M[0, 0]))),
             "max_offset_mm": 1000 * max(offsets, default=float("nan")),
             "max_mass_diff": max(masses, default=float("nan"))}
 
@@ -380,10 +391,11 @@ def tables(rows: list[dict], comparisons: dict) -> str:
         parts += ["", "Turned captures against `stuff-desk` (up found, the residual tilt of the two "
                   "exported worlds, object centres compared through that turn, masses):", "",
                   markdown_table(["scene", "up error °", "same objects", "same roles", "same dynamic count",
-                                  "residual tilt °", "max centre offset mm", "max mass change %"],
+                                  "residual tilt °", "turn about z °", "max centre offset mm",
+                                  "max mass change %"],
                                  [[n, f"{next(r['up_error_deg'] for r in rows if r['scene'] == n):.2f}",
                                    _yes(c["same_objects"]), _yes(c["same_roles"]), _yes(c["same_outcome"]),
-                                   f"{c['tilt_deg']:.2f}", f"{c['max_offset_mm']:.1f}",
+                                   f"{c['tilt_deg']:.2f}", f"{c['yaw_deg']:.0f}", f"{c['max_offset_mm']:.1f}",
                                    f"{100 * c['max_mass_diff']:.1f}"] for n, c in comparisons.items()])]
     masses = [m for r in rows for m in r["masses"]]
     if masses:
@@ -392,9 +404,10 @@ def tables(rows: list[dict], comparisons: dict) -> str:
                   f"{100 * np.median(errs):.0f} %, real mass inside the reported range for "
                   f"{sum(m['in_range'] for m in masses)} of {len(masses)}:", "",
                   markdown_table(["object", "mass model", "density key", "real kg", "estimate kg", "error %",
-                                  "range kg", "real in range"],
+                                  "range kg", "real in range", "hull volume / scan's"],
                                  [[m["object"], m["model"], m["key"], f"{m['real']:.3f}", f"{m['est']:.3f}",
-                                   f"{100 * m['err']:+.0f}", f"{m['lo']:.3f}-{m['hi']:.3f}", _yes(m["in_range"])]
+                                   f"{100 * m['err']:+.0f}", f"{m['lo']:.3f}-{m['hi']:.3f}", _yes(m["in_range"]),
+                                   f"{m['hull_ratio']:.2f}"]
                                   for m in masses])]
     missing = [f"{r['scene']}: {', '.join(r['masses_missing'])}" for r in rows if r["masses_missing"]]
     if missing:
@@ -506,14 +519,15 @@ def main(argv=None) -> int:
             built = build(name, work, cache=cache, **size)
             print(f"{name}: {len(built.scene)} surfels built in {time.perf_counter() - t:.1f} s", flush=True)
             reports[name], wall, cpu = export(built, work, name)
-            rows.append(measure(name, built, reports[name], wall, cpu))
+            rows.append(measure(name, built, reports[name], work / name, wall, cpu))
             print_row(rows[-1])
             if not np.allclose(built.rotation, np.eye(3)):
                 if "stuff-desk" not in reports:     # the original, to compare with
                     reports["stuff-desk"] = export(build("stuff-desk", work, cache=cache, **size), work,
                                                    "stuff-desk")[0]
                 comparisons[name] = compare(reports["stuff-desk"], reports[name], built.rotation)
-                print(f"    vs stuff-desk: {comparisons[name]}", flush=True)
+                print("    vs stuff-desk: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                                      for k, v in comparisons[name].items()), flush=True)
     body = (f"Scenes from meshes (exact geometry, hard labels), {size['width']}x{size['height']} pixels, "
             f"{size['views']} views on a hand-held arc at 1.2-1.6 m (the room: the generator's "
             f"{size['views']} views); `export_scene(load_scene(ckpt), out, \"all\", completion=\"auto\")` "
