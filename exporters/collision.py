@@ -38,6 +38,10 @@ class Collision:
         return 0 if self.is_primitive else len(self.parts)
 
 
+# Primitive fits whose errors differ by less than this (m) are equally good: the smaller one wins.
+PRIMITIVE_ERROR_STEP = 1e-3
+
+
 def default_tolerance(mesh, relative: float = 0.03, floor: float = 0.003) -> float:
     """3 % of the bounding-box diagonal, at least 3 mm: below what a gripper or a settle notices."""
     return max(floor, relative * float(np.linalg.norm(mesh.extents)))
@@ -290,8 +294,11 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
             vol = float(pm.volume)
             if obstacles and err <= tol and penetrates([pm], obstacles, max_penetration):
                 continue
-            if err <= tol and (best is None or vol < best[0]):
-                best = (vol, kind, size, T, err)
+            # the primitive that follows the surface best (a reconstructed ball also fits a cylinder
+            # within tolerance, one lying on its side that rolls off its support); volume breaks ties
+            key = (round(err / PRIMITIVE_ERROR_STEP), vol)
+            if err <= tol and (best is None or key < best[0]):
+                best = (key, kind, size, T, err)
         if best is not None:
             _, kind, size, T, err = best
             return Collision(kind, err, tol, size=size, transform=T, parts=[primitive_mesh(kind, size, T)])

@@ -36,6 +36,7 @@ DENSITY_KG_M3: dict[str, float] = {
     "chair": 150.0, "table": 250.0, "desk": 250.0, "sofa": 120.0, "couch": 120.0, "bed": 150.0,
     "cabinet": 200.0, "shelf": 200.0, "bookshelf": 250.0, "dresser": 250.0, "nightstand": 250.0,
     "book": 700.0, "books": 700.0, "box_cardboard": 80.0, "basket": 100.0, "bin": 100.0,
+    "foam": 40.0, "sponge": 30.0,      # polyurethane / EVA foam: 20-60 kg/m^3
     "pillow": 40.0, "cushion": 40.0, "towel": 200.0, "lamp": 300.0, "plant": 400.0, "pot": 1500.0,
     "toy": 300.0, "ball": 100.0, "bag": 150.0, "shoe": 400.0, "clock": 500.0, "sink": 1500.0,
     "toilet": 1500.0, "refrigerator": 250.0, "microwave": 350.0, "oven": 350.0,

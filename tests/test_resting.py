@@ -61,3 +61,19 @@ def test_small_objects_keep_small_visual_meshes():
     assert obj.measured.face_budget == visual_face_budget(dense, 0.0025, 10_919)
     assert len(obj.mesh.faces) <= obj.measured.face_budget and obj.mesh.is_watertight
     assert obj.measured.decimation_error < 0.005
+
+
+def test_a_reconstructed_ball_gets_a_sphere_not_a_lying_cylinder():
+    """A fused ball is a little out of round (6.7 x 6.9 x 7.3 cm): a cylinder on its side fits it
+    within the tolerance too, and rolls off the cabinet it rests on; the sphere follows it best."""
+    from psimap.exporters.collision import collision_geometry
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    ball.apply_scale([0.0335, 0.0345, 0.0365])
+    ball.apply_transform(trimesh.transformations.rotation_matrix(np.radians(30), [1, 1, 0]))
+    c = collision_geometry(ball, 0.012)
+    assert c.kind == "sphere", (c.kind, c.error)
+    can = trimesh.creation.cylinder(radius=0.033, height=0.12, sections=32)
+    assert collision_geometry(can, 0.006).kind == "cylinder"
+    box = trimesh.creation.box(extents=[0.1, 0.06, 0.04])
+    assert collision_geometry(box, 0.004).kind == "box"
