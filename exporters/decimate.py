@@ -102,18 +102,20 @@ def _meshlab_simplify(mesh, faces: int):
 # A visual mesh needs triangles no smaller than this many error budgets across, nor smaller than
 # this fraction of its bounding-box diagonal: finer ones draw nothing a viewer or a camera sees.
 EDGE_BUDGETS = 4.0
-EDGE_DIAGONAL = 1.0 / 60.0
+EDGE_DIAGONAL = 1.0 / 40.0
 MIN_VISUAL_FACES = 200
 
 
 def visual_face_budget(mesh, budget: float, source_faces: int = 0) -> int:
-    """Most faces the visual mesh of `mesh` (trimesh) needs at error budget `budget` (m): its area in
-    triangles of edge max(EDGE_BUDGETS x budget, EDGE_DIAGONAL x diagonal), at least
+    """Most faces the visual mesh of `mesh` (trimesh) needs at error budget `budget` (m): its
+    envelope's area in triangles of edge max(EDGE_BUDGETS x budget, EDGE_DIAGONAL x diagonal), at least
     MIN_VISUAL_FACES, and never more than the mesh it was made from had (`source_faces`, 0 = no
     limit): closing and decimation must not grow a small object's mesh."""
     diag = float(np.linalg.norm(mesh.extents))
     edge = max(EDGE_BUDGETS * float(budget), EDGE_DIAGONAL * diag, 1e-6)
-    cap = max(MIN_VISUAL_FACES, int(np.ceil(float(mesh.area) / (0.433 * edge * edge))))
+    # the area at that scale: a rough fused surface's own area counts its noise, its envelope's not
+    area = min(float(mesh.area), float(mesh.convex_hull.area))
+    cap = max(MIN_VISUAL_FACES, int(np.ceil(area / (0.433 * edge * edge))))
     return min(cap, max(MIN_VISUAL_FACES, int(source_faces))) if source_faces > 0 else cap
 
 

@@ -151,3 +151,26 @@ def test_gap_between_convex_meshes_is_read_exactly(tmp_path):
     r = check_mjcf(_write(tmp_path, text))
     assert r["nudges"]["box"] == pytest.approx(-0.012, abs=3e-4)
     assert r["passed"] and r["max_drift"] < 1e-3
+
+
+def test_lowering_onto_a_ridge_does_not_leave_the_body_inside_it(tmp_path):
+    """A box hovers 5 mm over a static ridge whose crest runs under its bottom face between the
+    points the downward rays start from: the rays read a 15 mm gap, lowering by it puts the crest
+    1 cm into the box, and the check must lift it out again rather than fail on the penetration."""
+    import mujoco
+
+    from psimap.sim.check import resolve_penetration
+
+    ridge = ('<body name="ridge" pos="0.01 0 0.1"><geom type="box" size="0.05 0.3 0.05" '
+             'euler="0 0.785398 0"/></body>\n')
+    crest = 0.1 + 0.05 * np.sqrt(2)
+    z = crest + 0.005 + 0.05                          # box centre: its bottom 5 mm over the crest
+    p = _write(tmp_path, BOX.format(z=f"{z:.6f}", extra=ridge).replace('size="0.1 0.1 0.05"',
+                                                                        'size="0.05 0.05 0.05"'))
+    nudges = resolve_penetration(p, max_gap=0.02)
+    model = mujoco.MjModel.from_xml_path(str(p))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    worst = min((data.contact[i].dist for i in range(data.ncon)), default=0.0)
+    assert worst >= -1.5e-3, worst                    # not left inside the ridge
+    assert -0.006 < nudges.get("box", 0.0) < 0.0      # came down onto it, by about its real gap
