@@ -26,7 +26,7 @@ demo: $(STAMP)
 	$(VENV)/bin/psimap demo --out demo_out
 
 test: $(STAMP)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n auto --dist loadfile tests
 
 # Not part of CI: applies every mutation in tests/mutations.md to a copy of the tree and reports
 # any the tests do not catch (tests/mutate.py; `$(PY) tests/mutate.py M07` runs one).
