@@ -62,10 +62,11 @@ def ycb_table(tmp: Path):
              f"{chk['max_drift'] * 1000:.2f} mm after {chk['duration_s']:.0f} s, "
              f"{r['timings']['sim_seconds_per_wall_second']:.1f} sim s / wall s; writers + check "
              f"{total:.1f} s; USD validation errors: {len(r['usd_validation']['errors'])}. "
-             f"Median |mass error| {np.median(errs):.0f} %. Densities are class knowledge, not fitted: "
-             "the YCB banana is a hollow plastic replica and the YCB mug is plastic, while the table "
-             "assumes real fruit and ceramic tableware (over-estimates); the bowl's scanned wall encloses "
-             "less material than the real bowl (under-estimate even at ceramic density).")
+             f"Median |mass error| {np.median(errs):.0f} %. Densities and wall thicknesses are class "
+             "knowledge, not fitted: the mug and the bowl are shells (exporters/shell.py: envelope area "
+             "without the opening x the geometric middle of plastic and ceramic walls; kg/m3 here is "
+             "their mass over the enclosed volume); the YCB banana is a hollow plastic replica, the "
+             "table assumes real fruit (over-estimate).")
     write_section("export/ycb", "Export: YCB scans, mass vs real, decimation, collider, settle",
                   markdown_table(header, rows) + "\n\n" + notes,
                   headlines=[("six YCB scans in one MJCF: settle check; median |mass error|",
