@@ -275,9 +275,10 @@ def view_texel(mesh, views) -> float:
     return 0.5 * best if np.isfinite(best) else 0.0
 
 
-def with_flat_base(parts, z: float, *, touch: float = 3e-3, band: float = 0.01) -> list:
+def with_flat_base(parts, z: float, *, touch: float = 0.01, band: float = 0.01) -> list:
     """Convex collider parts whose bottom reaches the support plane z (within `touch`), each with
-    its vertices less than `band` above the plane copied straight down onto it: a hull simplified
+    its vertices less than `band` above its own bottom copied straight down onto the plane (a gap
+    of a few millimetres closes with it): a hull simplified
     to a tolerance tilts a bottle's small base by millimetres, and a tall object standing on one
     edge of it tips over. The footprint does not grow (a wider base would reach into the neighbour
     the collider was clipped against). Parts not at the base are kept as they are."""
@@ -286,7 +287,7 @@ def with_flat_base(parts, z: float, *, touch: float = 3e-3, band: float = 0.01) 
     out = []
     for p in parts:
         v = np.asarray(p.vertices, np.float64)
-        low = v[v[:, 2] <= z + band]
+        low = v[v[:, 2] <= v[:, 2].min() + band]
         if v[:, 2].min() > z + touch or len(low) < 3:
             out.append(p)
             continue
