@@ -17,6 +17,9 @@ def cli_export(opts) -> int:
     from psimap.scene import load_scene
 
     check_output_dir(opts.out, "export", overwrite=getattr(opts, "overwrite", False), what="--out")
+    from psimap.geometry.gravity import parse_up
+
+    parse_up(getattr(opts, "up", "auto"))           # a bad --up is an error before the work
 
     kw = {}
     if getattr(opts, "densities", ""):
