@@ -39,7 +39,9 @@ class GenerateOptions:
     frames: int = opt(60, "number of camera frames")
     width: int = opt(160, "image width in pixels")
     height: int = opt(120, "image height in pixels")
-    objects: int = opt(0, "number of objects (0 = random in 5..15)")
+    layout: str = opt("room", "room: furniture and small objects in a room; tabletop: things on a table in a "
+                              "room, filmed by a hand-held orbit around the table", choices=["room", "tabletop"])
+    objects: int = opt(0, "number of objects (0 = random: 5..15 in a room, 4..8 on the table besides the table)")
     noise: float = opt(0.15, "pseudo-label noise rate (merges, splits, misses, flips), 0..1")
     lidar: bool = opt(False, "also write a LiDAR sweep with intensity")
     pose_noise: float = opt(0.0, "std of pose noise (metres / radians) applied to the written poses")

@@ -36,13 +36,23 @@ ORBIT_MARGIN = 1.05          # camera orbit keeps this distance from the walls (
 INNER_CLEAR = 0.45           # free-standing objects stay this far inside the orbit
 FURNITURE_GAP = 0.12         # free floor between pieces of furniture
 RAYS_PER_BATCH = 2_000_000   # camera rays cast at once (~150 MB of temporaries)
+LAYOUTS = ("room", "tabletop")
 
 
-def classes():
-    """The class table as a list of `ClassInfo` (ids from 1)."""
+def classes(extra_things=()):
+    """The class table as a list of `ClassInfo` (ids from 1): the fixed table, then a thing class for
+    each name of `extra_things` not in it (ids follow in order of first appearance)."""
     from psimap.data.frames import ClassInfo
 
-    return [ClassInfo(CLASS_ID[n], n, n in S.THING_CLASSES) for n in CLASS_NAMES]
+    return [ClassInfo(i, n, n not in S.STUFF_CLASSES) for n, i in class_ids(extra_things).items()]
+
+
+def class_ids(extra_things=()) -> dict[str, int]:
+    """Class name -> id: CLASS_ID, then the new names of `extra_things` appended."""
+    ids = dict(CLASS_ID)
+    for name in extra_things:
+        ids.setdefault(name, len(ids) + 1)
+    return ids
 
 
 # ------------------------------------------------------------------------------------------ layout
@@ -70,6 +80,7 @@ class Layout:
     height: float
     ceiling: bool
     objects: list[Placed] = field(default_factory=list)
+    kind: str = "room"           # "room", or "tabletop": objects[0] is the table, the others on it
 
     @property
     def orbit(self) -> tuple[float, float]:
@@ -335,12 +346,174 @@ def trajectory(lay: Layout, n_frames: int, rng: np.random.Generator) -> np.ndarr
         eye = np.array([ax * s * math.cos(th), ay * s * math.sin(th), z])
         # Dwell on each stop, then glide to the next (smoothstep), so views stay steady.
         u = tours * len(stops) * t + ph[3] / (2 * math.pi) * len(stops)
-        k, f = int(u) % len(stops), u - int(u)
-        f = f * f * (3 - 2 * f)
-        target = (1 - f) * stops[k] + f * stops[(k + 1) % len(stops)]
+        target = _tour(stops, u)
         if np.linalg.norm(target[:2] - eye[:2]) < 0.3:  # never look straight down at the feet
             target = target + 0.5 * np.r_[-eye[:2] / max(np.linalg.norm(eye[:2]), 1e-9), 0.0]
         poses.append(look_at(eye, target))
+    return np.stack(poses)
+
+
+def _tour(stops: np.ndarray, u: float) -> np.ndarray:
+    """Gaze target at tour position u over stops [S, 3]: dwell on stop int(u), then glide to the next
+    (smoothstep), so views stay steady."""
+    k, f = int(u) % len(stops), u - int(u)
+    f = f * f * (3 - 2 * f)
+    return (1 - f) * stops[k] + f * stops[(k + 1) % len(stops)]
+
+
+# ---------------------------------------------------------------------------------------- tabletop
+# Kinds of things on a generated tabletop: class, builder, weight. Balls come in three sizes: large
+# ones (a basketball is 12 cm in radius), the room's and apple-sized ones.
+TABLETOP_KINDS = {
+    "box": ("box", lambda rng: S.box(rng, sides=(0.05, 0.25)), 0.22),
+    "bottle": ("bottle", S.bottle, 0.18),
+    "mug": ("mug", S.mug, 0.15),
+    "ball": ("ball", S.ball, 0.1),
+    "large ball": ("ball", lambda rng: S.ball(rng, radii=(0.10, 0.20)), 0.18),
+    "small ball": ("ball", lambda rng: S.ball(rng, radii=(0.03, 0.04)), 0.17),
+}
+WALL_DISTANCE = (1.5, 3.0)    # from the table centre to each wall, metres
+TOP_GAP = 0.02                # free space between two things on the table (and to its edge)
+CAMERA_DISTANCE = (0.7, 1.5)  # from the table centre, horizontally
+CAMERA_HEIGHT = (1.0, 1.6)
+MIN_SEEN_SHARE = 0.7          # of a nominal orbit, from which each thing on the table is not hidden
+
+
+def _top(table: Placed):
+    """(rect, z) of the table top in the world."""
+    rect, z, _ = _world_supports(table)[0]
+    return rect, z
+
+
+def _place_on_top(shape: S.Shape, lay: Layout, rng: np.random.Generator, iid: int,
+                  tries: int = 60) -> Placed | None:
+    """A spot for `shape` on the table top (lay.objects[0]): its whole footprint on the top, TOP_GAP
+    from the edge and from every other thing there; None when none was found in `tries` draws."""
+    table = lay.objects[0]
+    (c, h, tyaw), z = _top(table)
+    for _ in range(tries):
+        yaw = 0.0 if shape.round else float(rng.uniform(0, 2 * math.pi))
+        # Half extents of the footprint along the top's axes: the centre is drawn where it fits.
+        reach = np.abs(_rot2(yaw - tyaw)) @ np.asarray(shape.half)
+        room = h - reach - TOP_GAP
+        if np.any(room <= 0):
+            return None
+        xy = c + _rot2(tyaw) @ (rng.uniform(-1, 1, 2) * room)
+        rect = (xy, np.asarray(shape.half), yaw)
+        if any(rects_overlap(rect, o.rect, TOP_GAP) for o in lay.objects[1:]):
+            continue
+        p = Placed(iid, shape, yaw, np.array([xy[0], xy[1], z]), table.instance_id)
+        if _seen_share(lay.objects[1:] + [p], table).min() < MIN_SEEN_SHARE:
+            continue   # it would hide, or be hidden, most of the way round
+        return p
+    return None
+
+
+def _seen_share(things: list[Placed], table: Placed, views: int = 24) -> np.ndarray:
+    """[T] share of the views on a nominal orbit round the table (the middle of the cameras' range)
+    from which the middle of each thing, at 60 % of its height, is not hidden by another. Each thing
+    hides as a vertical cylinder of its inscribed radius and its height: a cheap, lenient stand-in
+    for ray casting, so placement can keep small things from ending up behind big ones."""
+    (c, h, tyaw), top = _top(table)
+    a = np.linspace(0, 2 * np.pi, views, endpoint=False)
+    radii = np.clip(h + 0.55, *CAMERA_DISTANCE)
+    eyes = c + (np.column_stack([radii[0] * np.cos(a), radii[1] * np.sin(a)]) @ _rot2(tyaw).T)  # [V, 2]
+    eye_z = float(np.mean(CAMERA_HEIGHT)) + 0.05
+    xy = np.array([p.xyz[:2] for p in things])                                       # [T, 2]
+    r = np.array([min(p.shape.half) for p in things])
+    z_top = np.array([p.xyz[2] + p.shape.height for p in things])
+    z_mid = np.array([p.xyz[2] + 0.6 * p.shape.height for p in things])
+    seen = np.ones((len(things), views), bool)
+    for i in range(len(things)):
+        d = xy[i] - eyes                                                              # [V, 2]
+        for j in range(len(things)):
+            if j == i:
+                continue
+            # Closest approach of the sight line (eye -> target, s in [0, 1]) to j's axis.
+            s_ = np.clip(((xy[j] - eyes) * d).sum(1) / (d * d).sum(1), 0.0, 1.0)
+            gap = np.linalg.norm(eyes + s_[:, None] * d - xy[j], axis=1)
+            z_line = eye_z + s_ * (z_mid[i] - eye_z)
+            seen[i] &= ~((gap < r[j]) & (z_line < z_top[j]))
+    return seen.mean(1)
+
+
+def make_tabletop(rng: np.random.Generator, n_objects: int | None = None, ceiling: bool | None = None,
+                  extra: list[S.Shape] = ()) -> Layout:
+    """A table in a room, things on its top: the `extra` shapes first (each must fit, else
+    PsimapError), then n_objects generated ones (None = random in 4..8; one that finds no spot is
+    tried as another kind, then left out). Walls are WALL_DISTANCE from the table centre."""
+    d = rng.uniform(*WALL_DISTANCE, size=4)          # to the -x, +x, -y, +y walls
+    lay = Layout(float(d[0] + d[1]) / 2, float(d[2] + d[3]) / 2, float(rng.uniform(2.5, 3.0)),
+                 bool(rng.random() < 0.5) if ceiling is None else bool(ceiling), kind="tabletop")
+    # A dining / work table: 1-1.8 m by 0.7-1 m, 68-78 cm high.
+    table = S.table(rng, max_half=0.9, lengths=(1.0, 1.8), depths=(0.7, 1.0))
+    centre = np.array([(d[0] - d[1]) / 2, (d[2] - d[3]) / 2, 0.0])   # room centred on the origin
+    lay.objects.append(Placed(1, table, float(rng.uniform(0, 2 * math.pi)), centre, 0))
+    for shape in extra:
+        p = _place_on_top(shape, lay, rng, len(lay.objects) + 1, tries=400)
+        if p is None:
+            raise PsimapError(f"extra object {shape.kind!r} ({2 * shape.half[0]:.2f} x {2 * shape.half[1]:.2f} m) "
+                              f"finds no free spot on the {2 * table.half[0]:.2f} x {2 * table.half[1]:.2f} m table")
+        lay.objects.append(p)
+    n = int(rng.integers(4, 9)) if not n_objects else int(n_objects)
+    names = list(TABLETOP_KINDS)
+    weights = np.array([w for _, _, w in TABLETOP_KINDS.values()])
+    for kind in rng.choice(names, size=n, p=weights / weights.sum()):
+        for _ in range(3):  # another kind if this one found no room
+            cls, build, _ = TABLETOP_KINDS[str(kind)]
+            shape = build(rng)
+            shape.kind = cls
+            p = _place_on_top(shape, lay, rng, len(lay.objects) + 1)
+            if p is not None:
+                lay.objects.append(p)
+                break
+            kind = names[int(rng.integers(len(names)))]
+    for p in lay.objects:
+        p.solid = S.place(p.shape.solid, p.yaw, p.xyz)
+    _drop_interpenetrating(lay)
+    # Footprints are disjoint, so nothing should be dropped; an extra object never silently is.
+    if sum(p.shape.surface is not None for p in lay.objects) < len(extra):
+        raise PsimapError("an extra object overlaps another thing on the table")
+    return lay
+
+
+def tabletop_trajectory(lay: Layout, n_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """[F, 4, 4] camera-to-world poses of a hand-held capture of the table: one orbit around it on an
+    ellipse that follows the table's shape (CAMERA_DISTANCE from its centre, CAMERA_HEIGHT above the
+    floor), with a wobble in distance and height and a small shake; the gaze tours the things on the
+    top (sorted by azimuth) but stays near the mean direction to them, so every thing is in view most
+    of the time."""
+    table = lay.objects[0]
+    (c, h, tyaw), top = _top(table)
+    rx, ry = np.clip(h + rng.uniform(0.45, 0.65, size=2), *CAMERA_DISTANCE)
+    theta0 = rng.uniform(0, 2 * math.pi)
+    turn = rng.choice([-1.0, 1.0])
+    ph = rng.uniform(0, 2 * math.pi, size=4)
+    z_mid = rng.uniform(1.3, 1.42)      # high enough to see over the big things most of the orbit
+    centre = np.array([c[0], c[1], top + 0.05])
+    things = lay.objects[1:]
+    stops = sorted((_object_centre(p) for p in things), key=lambda q: math.atan2(q[1] - c[1], q[0] - c[0]))
+    stops = np.array(stops) if stops else centre[None]
+    wall = np.array([lay.half_x, lay.half_y]) - 0.3
+    poses = []
+    for i in range(n_frames):
+        t = i / max(n_frames, 1)
+        th = theta0 + turn * 2 * math.pi * t
+        shake = rng.normal(0.0, 0.005, 3)
+        s = 1.0 + 0.06 * math.sin(3 * th + ph[0])
+        local = s * np.array([rx * math.cos(th), ry * math.sin(th)]) + shake[:2]
+        local *= np.clip(np.linalg.norm(local), *CAMERA_DISTANCE) / np.linalg.norm(local)
+        xy = np.clip(c + _rot2(tyaw) @ local, -wall, wall)
+        z = np.clip(z_mid + 0.15 * math.sin(2 * math.pi * t + ph[1]) + 0.04 * math.sin(5 * th + ph[2])
+                    + shake[2], *CAMERA_HEIGHT)
+        eye = np.array([xy[0], xy[1], z])
+        # Aim along the mean direction to the things (which keeps near ones, far below the horizon, in
+        # the frame as well as the far end of a long table), turned a little towards the tour's stop.
+        to_things = stops - eye
+        ahead = (to_things / np.linalg.norm(to_things, axis=1, keepdims=True)).mean(0)
+        gaze = _tour(stops, 1.5 * len(stops) * t + ph[3] / (2 * math.pi) * len(stops)) - eye
+        view = 0.7 * ahead / np.linalg.norm(ahead) + 0.3 * gaze / np.linalg.norm(gaze)
+        poses.append(look_at(eye, eye + view + rng.normal(0.0, 0.01, 3)))
     return np.stack(poses)
 
 
@@ -358,11 +531,24 @@ class SceneMesh:
     objects: dict            # instance id -> trimesh.Trimesh (complete, watertight)
 
 
-def build_mesh(lay: Layout) -> SceneMesh:
+def _world_surface(p: Placed):
+    """The placed object's surface as a trimesh in the world: its solid, or its given surface moved
+    the same way (yaw about z, then the translation)."""
+    if p.shape.surface is None:
+        return S.to_trimesh(p.solid)
+    m = p.shape.surface.copy()
+    T = np.eye(4)
+    T[:2, :2], T[:3, 3] = _rot2(p.yaw), p.xyz
+    return m.apply_transform(T)
+
+
+def build_mesh(lay: Layout, class_id: dict[str, int] | None = None) -> SceneMesh:
+    """class_id: class name -> id (default CLASS_ID; `class_ids` when there are extra classes)."""
+    class_id = CLASS_ID if class_id is None else class_id
     verts, faces, inst, sem, mat, objects = [], [], [], [], [], {}
     nv = 0
     parts = [(name, m, 0) for name, m in S.room_parts(lay.half_x, lay.half_y, lay.height, lay.ceiling)]
-    parts += [(p.shape.kind, S.to_trimesh(p.solid), p.instance_id) for p in lay.objects]
+    parts += [(p.shape.kind, _world_surface(p), p.instance_id) for p in lay.objects]
     for k, (name, m, iid) in enumerate(parts):
         if iid:
             objects[iid] = m
@@ -371,7 +557,7 @@ def build_mesh(lay: Layout) -> SceneMesh:
         nv += len(m.vertices)
         nf = len(m.faces)
         inst.append(np.full(nf, iid, np.int64))
-        sem.append(np.full(nf, CLASS_ID[name], np.int64))
+        sem.append(np.full(nf, class_id[name], np.int64))
         mat.append(np.full(nf, k, np.int64))
     return SceneMesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(inst),
                      np.concatenate(sem), np.concatenate(mat), objects)
@@ -529,8 +715,15 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
              n_objects: int | None = None, label_noise: float = 0.15, lidar: bool = False,
              pose_noise: float = 0.0, depth_noise: bool | N.DepthNoise = True, ceiling: bool | None = None,
              labels: N.LabelNoise | None = None, lidar_every: int = 10, progress: bool | None = None,
-             overwrite: bool = False) -> dict:
+             overwrite: bool = False, layout: str = "room", extra_objects=None) -> dict:
     """Write a synthetic scene with exact ground truth to `out_dir` (docs/scene-format.md).
+
+    layout: "room" (furniture and small objects in a room, n_objects in all, None = 5..15) or
+    "tabletop" (a table in a room, n_objects generated things on its top, None = 4..8, seen by a
+    hand-held orbit around the table). extra_objects (tabletop only): [(name, trimesh mesh in metres,
+    +z up; mass_kg or None)], e.g. scanned YCB models, placed upright on the top before the generated
+    things; a name not in the class table becomes a new thing class, and gt/instances.json carries
+    "mass_kg" where it is given.
 
     label_noise: one knob for the pseudo-label errors (`LabelNoise.from_rate`); `labels` overrides
     it with explicit rates. depth_noise: sensor noise and invalid pixels on the written depth (True:
@@ -553,6 +746,12 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
         raise PsimapError(f"pose noise must be a finite value >= 0, got {pose_noise}")
     if n_objects is not None and n_objects != 0 and not 1 <= n_objects <= 40:
         raise PsimapError(f"number of objects must lie in 1..40, got {n_objects}")
+    if layout not in LAYOUTS:
+        raise PsimapError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    if extra_objects and layout != "tabletop":
+        raise PsimapError("extra objects are placed on a table: they need layout='tabletop'")
+    extra = _extra_shapes(extra_objects or [])
+    class_id = class_ids(e.kind for e in extra)
     from psimap.io_utils import check_output_dir
 
     check_output_dir(out_dir, "scene", overwrite=overwrite)        # before the work, not after it
@@ -563,8 +762,11 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
     noise = labels or N.LabelNoise.from_rate(label_noise)
     timings = {}
 
-    lay = make_layout(r_layout, n_objects or None, ceiling)
-    mesh = build_mesh(lay)
+    if layout == "room":
+        lay = make_layout(r_layout, n_objects or None, ceiling)
+    else:
+        lay = make_tabletop(r_layout, n_objects or None, ceiling, extra)
+    mesh = build_mesh(lay, class_id)
     timings["layout"] = time.perf_counter() - t0
 
     # Texture frequency scales with the material's object size (room surfaces count as 2 m).
@@ -577,9 +779,9 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
     lights = np.column_stack([towards, [0.55, 0.25]])
 
     K = intrinsics(width, height)
-    c2ws = trajectory(lay, frames, r_cam)
+    c2ws = (trajectory if layout == "room" else tabletop_trajectory)(lay, frames, r_cam)
     scene = _raycaster(mesh)
-    thing_ids = [CLASS_ID[n] for n in S.THING_CLASSES]
+    thing_ids = [c.id for c in classes(class_id) if c.isthing]
     stats_total: dict[str, int] = {}
     out_frames = []
     n_surface = n_valid = 0
@@ -613,9 +815,10 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
 
     import trimesh
 
-    instances = [{"id": p.instance_id, "semantic": CLASS_ID[p.shape.kind], "name": p.shape.kind,
-                  "support": p.support} for p in lay.objects]
-    write_scene(out_dir, out_frames, classes(), gt_mesh=trimesh.Trimesh(mesh.vertices, mesh.faces, process=False),
+    instances = [{"id": p.instance_id, "semantic": class_id[p.shape.kind], "name": p.shape.kind,
+                  "support": p.support} | ({} if p.shape.mass_kg is None else {"mass_kg": p.shape.mass_kg})
+                 for p in lay.objects]
+    write_scene(out_dir, out_frames, classes(class_id), gt_mesh=trimesh.Trimesh(mesh.vertices, mesh.faces, process=False),
                 gt_face_instance=mesh.face_instance, gt_face_semantic=mesh.face_semantic,
                 gt_objects=mesh.objects, gt_instances=instances, overwrite=overwrite)
     timings["write"] = time.perf_counter() - t0 - sum(timings.values())
@@ -623,12 +826,46 @@ def generate(out_dir, seed: int = 0, *, frames: int = 60, width: int = 160, heig
     return {
         "out": str(Path(out_dir)), "seed": int(seed), "frames": int(frames), "width": int(width),
         "height": int(height), "objects": len(lay.objects),
+        "layout": layout,
         "room": {"half_x": lay.half_x, "half_y": lay.half_y, "height": lay.height, "ceiling": lay.ceiling},
         "instances": instances,
         "invalid_depth_fraction": float(1.0 - n_valid / max(n_surface, 1)),
         "label_noise": stats_total,
         "timings": timings, "seconds": time.perf_counter() - t0,
-    }
+    } | ({} if layout == "room" else {"table": _table_summary(lay.objects[0])})
+
+
+def _table_summary(table: Placed) -> dict:
+    (c, h, yaw), top = _top(table)
+    return {"length": 2 * float(h[0]), "depth": 2 * float(h[1]), "top": float(top),
+            "centre": [float(c[0]), float(c[1])], "yaw": float(yaw)}
+
+
+def _extra_shapes(extra_objects) -> list[S.Shape]:
+    """Checked (name, mesh, mass_kg) items -> given Shapes; any bad item is one PsimapError."""
+    shapes = []
+    for k, item in enumerate(extra_objects):
+        try:
+            name, mesh, mass = item
+            verts = np.asarray(mesh.vertices, np.float64)
+            faces = np.asarray(mesh.faces, np.int64)
+        except (TypeError, ValueError, AttributeError):
+            raise PsimapError(f"extra object {k}: expected (name, trimesh mesh, mass_kg or None)") from None
+        what = f"extra object {k} ({name!r})"
+        if not isinstance(name, str) or not name.strip():
+            raise PsimapError(f"{what}: the name must be a non-empty string")
+        if name in S.STUFF_CLASSES:
+            raise PsimapError(f"{what}: {name!r} is a stuff class, not a thing")
+        if len(faces) == 0 or verts.ndim != 2 or verts.shape[1] != 3 or not np.all(np.isfinite(verts)):
+            raise PsimapError(f"{what}: the mesh needs faces and finite vertices")
+        size = np.ptp(verts, axis=0)
+        if size.min() < 0.005 or size.max() > 1.0:
+            raise PsimapError(f"{what}: its size {size.round(3).tolist()} m is not that of a thing on a "
+                              "table (5 mm .. 1 m a side; the mesh must be in metres)")
+        if mass is not None and not (isinstance(mass, (int, float)) and math.isfinite(mass) and mass > 0):
+            raise PsimapError(f"{what}: mass_kg must be a positive number or None, got {mass!r}")
+        shapes.append(S.given(name, mesh, None if mass is None else float(mass)))
+    return shapes
 
 
 def cli_generate(opts) -> int:
@@ -637,7 +874,7 @@ def cli_generate(opts) -> int:
         raise PsimapError("an output folder is required")
     s = generate(opts.out, seed=opts.seed, frames=opts.frames, width=opts.width, height=opts.height,
                  n_objects=opts.objects or None, label_noise=opts.noise, lidar=opts.lidar,
-                 pose_noise=opts.pose_noise, overwrite=opts.overwrite)
+                 pose_noise=opts.pose_noise, overwrite=opts.overwrite, layout=opts.layout)
     print(describe(s))
     return 0
 
@@ -651,7 +888,10 @@ def describe(s: dict) -> str:
     ln = s["label_noise"]
     return (f"wrote {s['out']}: {s['frames']} frames {s['width']}x{s['height']}, "
             f"room {2 * room['half_x']:.1f} x {2 * room['half_y']:.1f} x {room['height']:.1f} m"
-            f"{' with ceiling' if room['ceiling'] else ''}, {s['objects']} objects "
+            f"{' with ceiling' if room['ceiling'] else ''}, "
+            + (f"a {tab['length']:.2f} x {tab['depth']:.2f} m table (top at {tab['top']:.2f} m) and "
+               if (tab := s.get("table")) else "")
+            + f"{s['objects']} objects "
             f"({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})\n"
             f"  invalid depth {100 * s['invalid_depth_fraction']:.1f}% of surface pixels; pseudo-label errors: "
             f"{ln.get('merged', 0)} merges, {ln.get('split', 0)} splits, {ln.get('missed', 0)} misses, "

@@ -42,7 +42,9 @@ class Shape:
 
     solid: manifold3d.Manifold; half: footprint half extents (x, y) of its bounding rectangle;
     height: top z; supports: surfaces other objects may rest on; round: footprint is a circle of
-    radius `radius` (so its yaw does not matter for placement).
+    radius `radius` (so its yaw does not matter for placement). A given object (`given`) keeps its
+    own surface, which need not be closed; its solid is then the surface's convex hull, used only
+    to keep others out of it.
     """
 
     kind: str
@@ -52,6 +54,8 @@ class Shape:
     supports: list[Support] = field(default_factory=list)
     round: bool = False
     radius: float = 0.0
+    surface: object = None      # a given trimesh to render instead of `solid` (then its convex hull)
+    mass_kg: float | None = None  # the real mass of a given object, when known
 
 
 def segments_for(radius: float, tol: float | None = None) -> int:
@@ -104,9 +108,10 @@ def _revolve(profile: list[tuple[float, float]], radius: float):
 
 
 # ---------------------------------------------------------------------------------------- furniture
-def table(rng: np.random.Generator, max_half: float = 0.8) -> Shape:
-    length = rng.uniform(0.7, min(1.6, 2 * max_half))
-    depth = rng.uniform(0.55, min(0.9, length))
+def table(rng: np.random.Generator, max_half: float = 0.8, lengths=(0.7, 1.6), depths=(0.55, 0.9)) -> Shape:
+    """lengths / depths: ranges (m) of the top's two sides (the depth never exceeds the length)."""
+    length = rng.uniform(lengths[0], min(lengths[1], 2 * max_half))
+    depth = rng.uniform(depths[0], min(depths[1], length))
     height = rng.uniform(0.68, 0.78)
     top_t = rng.uniform(0.03, 0.05)
     leg = rng.uniform(0.04, 0.06)
@@ -176,8 +181,9 @@ def cabinet(rng: np.random.Generator, max_half: float = 0.5) -> Shape:
 
 
 # ------------------------------------------------------------------------------------ small objects
-def box(rng: np.random.Generator, max_height: float = math.inf) -> Shape:
-    sx, sy = rng.uniform(0.06, 0.26, size=2)
+def box(rng: np.random.Generator, max_height: float = math.inf, sides=(0.06, 0.26)) -> Shape:
+    """sides: range (m) of the two horizontal sides; the height lies in 5-25 cm."""
+    sx, sy = rng.uniform(sides[0], sides[1], size=2)
     sz = min(rng.uniform(0.05, 0.25), max_height)
     return Shape("box", _box(sx, sy, sz), (sx / 2, sy / 2), sz, [Support((0.0, 0.0), (sx / 2, sy / 2), sz)])
 
@@ -197,10 +203,9 @@ def bottle(rng: np.random.Generator, max_height: float = math.inf) -> Shape:
     return Shape("bottle", _revolve(prof, r), (r, r), total, round=True, radius=r)
 
 
-def ball(rng: np.random.Generator, max_height: float = math.inf) -> Shape:
-    import manifold3d as m3d
-
-    r = min(rng.uniform(0.04, 0.12), max_height / 2)
+def ball(rng: np.random.Generator, max_height: float = math.inf, radii=(0.04, 0.12)) -> Shape:
+    """radii: range (m) of the radius."""
+    r = min(rng.uniform(radii[0], radii[1]), max_height / 2)
     s = sphere(r)
     # The geodesic sphere has a vertex at each pole: its bottom is exactly at z = 0 after this.
     return Shape("ball", s.translate([0, 0, r]), (r, r), 2 * r, round=True, radius=r)
@@ -237,6 +242,26 @@ def solid_mug():
     body = m3d.Manifold.revolve(m3d.CrossSection([profile]), 64)
     handle = m3d.Manifold.revolve(m3d.CrossSection.circle(0.006, 12).translate([0.03, 0]), 48)
     return to_trimesh(body + handle.rotate([90, 0, 0]).translate([0.045, 0, 0.05]))
+
+
+def given(name: str, mesh, mass_kg: float | None = None) -> Shape:
+    """A given object (e.g. a scanned YCB model) as a Shape of class `name`: its surface (trimesh, metres,
+    +z up) with duplicate vertices merged, moved so that its footprint's bounding rectangle is centred
+    on the origin and its lowest point is at z = 0; its solid is the convex hull (always closed, so
+    placement and the overlap check work on scans with holes too)."""
+    import manifold3d as m3d
+    import trimesh
+
+    surface = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64),
+                              process=True)   # texture seams duplicate vertices: merged by position
+    lo, hi = surface.bounds
+    surface.apply_translation([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
+    hull = surface.convex_hull
+    solid = m3d.Manifold(m3d.Mesh(vert_properties=np.asarray(hull.vertices, np.float32),
+                                  tri_verts=np.asarray(hull.faces, np.uint32)))
+    half = (hi[:2] - lo[:2]) / 2
+    return Shape(name, solid, (float(half[0]), float(half[1])), float(hi[2] - lo[2]), surface=surface,
+                 mass_kg=mass_kg)
 
 
 FURNITURE_BUILDERS = {"table": table, "chair": chair, "shelf": shelf, "cabinet": cabinet}
