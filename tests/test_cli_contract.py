@@ -28,7 +28,7 @@ CALLS1 = {
     "no_command": [],
     "help": ["--help"],
     "generate": ["generate", "{tmp}/gen", "--seed", "4", "--frames", "3", "--width", "40", "--height", "30",
-                 "--objects", "5", "--noise", "0.3", "--lidar", "--pose-noise", "0.01"],
+                 "--objects", "5", "--noise", "0.3", "--lidar", "--pose-noise", "0.01", "--layout", "room"],
     # the smallest demo whose export passes its check and its outcome (tests/test_cli_generate_demo.py)
     "demo": ["demo", "--out", "{tmp}/demo", "--seed", "1", "--frames", "8", "--width", "64", "--height", "48",
              "--iters", "100", "--panoptic-iters", "20"],

@@ -301,6 +301,28 @@ def test_scene_loads(scene):
     assert np.abs(np.diff(f.rgb, axis=1)).mean() > 0.005
 
 
+def test_room_pinned(scene):
+    """Numbers of the seed-3 room as generated before the tabletop layout was added: a change to the
+    room layout, its cameras or its rendering shows here (the benchmarks compare rooms across commits)."""
+    from psimap.data import load
+    from psimap.data.scene_format import read_gt
+
+    out, summary = scene
+    assert summary["layout"] == "room" and "table" not in summary
+    room = summary["room"]
+    assert (room["half_x"], room["half_y"], room["height"], room["ceiling"]) == pytest.approx(
+        (2.8496435791160732, 2.6544140231233833, 2.9497899151476736, False), abs=1e-12)
+    assert [r["name"] for r in summary["instances"]] == ["table", "chair", "chair", "box", "box", "bottle",
+                                                         "box", "box", "mug", "box"]
+    assert [r["support"] for r in summary["instances"]] == [0, 0, 0, 2, 1, 0, 1, 1, 3, 1]
+    f = load(out)[0]
+    assert f.c2w[:3, 3][[0, 2]] == pytest.approx([1.4242205783087094, 1.2357327648852154], abs=1e-9)
+    assert int((f.gt_instance > 0).sum()) == 746
+    assert float(f.rgb.mean()) == pytest.approx(0.33696, abs=2e-5)
+    gt = read_gt(out)
+    assert len(gt.mesh.faces) == 1256 and gt.mesh.area == pytest.approx(211.42320873579564, rel=1e-9)
+
+
 def test_gt_maps_match_raycast_of_gt_mesh(scene):
     import open3d as o3d
 
