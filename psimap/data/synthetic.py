@@ -9,6 +9,11 @@ Lambertian shading of smooth procedural textures computed from the world positio
 pseudo-label noise come from `synthetic_noise`. Everything is written with
 `psimap.data.scene_format.write_scene`; the same seed gives byte-identical files.
 
+The tabletop layout (`layout="tabletop"`) puts one table in a room, walls 1.5-3 m from it, and 4-8
+things on its top, none hidden behind another for most of the way round; a hand-held orbit films it.
+Given meshes (`extra_objects`, e.g. scanned YCB models with their real masses) join them as things of
+new classes.
+
 Pixel convention: pixel (u, v) (column, row; integers) is the ray through K^-1 [u, v, 1], i.e. pixel
 centres sit at integer coordinates (OpenCV), and `cx = (W - 1) / 2`.
 """
