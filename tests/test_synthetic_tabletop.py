@@ -78,6 +78,8 @@ def test_things_rest_on_the_top_inside_it_and_apart(layouts, seed):
     for i, a in enumerate(things):
         for b in things[i + 1:]:
             assert not G.rects_overlap(a.rect, b.rect, gap=G.TOP_GAP * 0.99)
+    # No thing stands behind others from most of the way round.
+    assert G._seen_share(things, table).min() >= G.MIN_SEEN_SHARE
 
 
 def test_sizes_range_from_apple_to_large_ball(layouts):
