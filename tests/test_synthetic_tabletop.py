@@ -83,13 +83,17 @@ def test_things_rest_on_the_top_inside_it_and_apart(layouts, seed):
 
 
 def test_sizes_range_from_apple_to_large_ball(layouts):
-    balls = [o.shape.radius for lay in layouts.values() for o in lay.objects if o.shape.kind == "ball"]
-    boxes = [min(o.shape.half) * 2 for lay in layouts.values() for o in lay.objects if o.shape.kind == "box"]
     kinds = {o.shape.kind for lay in layouts.values() for o in lay.objects[1:]}
     assert kinds == {"ball", "box", "bottle", "mug"}
-    assert max(balls) >= 0.15 and sum(r >= 0.10 for r in balls) >= 3     # large balls
-    assert min(balls) <= 0.035 and sum(r <= 0.04 for r in balls) >= 3   # apple-sized ones
-    assert min(boxes) < 0.08
+    for lay in layouts.values():      # every tabletop has a large ball and an apple-sized one
+        radii = [o.shape.radius for o in lay.objects if o.shape.kind == "ball"]
+        assert max(radii) >= 0.1 and min(radii) <= 0.04
+    balls = [o.shape.radius for lay in layouts.values() for o in lay.objects if o.shape.kind == "ball"]
+    assert max(balls) >= 0.15 and min(balls) <= 0.035
+    # Boxes from ~5 cm a side to 25 cm.
+    build = G.TABLETOP_KINDS["box"][1]
+    sides = np.array([build(np.random.default_rng(k)).half for k in range(40)]) * 2
+    assert sides.min() < 0.06 and sides.max() > 0.23 and sides.min() >= 0.05
 
 
 @pytest.mark.parametrize("seed", range(3))
