@@ -20,6 +20,7 @@ centres sit at integer coordinates (OpenCV), and `cx = (W - 1) / 2`.
 from __future__ import annotations
 
 import math
+import numbers
 import sys
 import time
 from dataclasses import dataclass, field
@@ -538,7 +539,7 @@ class SceneMesh:
     face_instance: np.ndarray
     face_semantic: np.ndarray
     face_material: np.ndarray
-    objects: dict            # instance id -> trimesh.Trimesh (complete, watertight)
+    objects: dict            # instance id -> trimesh.Trimesh (complete; watertight unless given open)
 
 
 def _world_surface(p: Placed):
@@ -872,7 +873,8 @@ def _extra_shapes(extra_objects) -> list[S.Shape]:
         if size.min() < 0.005 or size.max() > 1.0:
             raise PsimapError(f"{what}: its size {size.round(3).tolist()} m is not that of a thing on a "
                               "table (5 mm .. 1 m a side; the mesh must be in metres)")
-        if mass is not None and not (isinstance(mass, (int, float)) and math.isfinite(mass) and mass > 0):
+        if mass is not None and not (isinstance(mass, numbers.Real) and not isinstance(mass, bool)
+                                     and math.isfinite(mass) and mass > 0):
             raise PsimapError(f"{what}: mass_kg must be a positive number or None, got {mass!r}")
         shapes.append(S.given(name, mesh, None if mass is None else float(mass)))
     return shapes
