@@ -17,6 +17,9 @@ from psimap.transforms import quat_to_rotmat, scale_intrinsics, transform_points
 MIN_ALPHA = 0.5
 # an instance seen on fewer pixels than this in a view adds nothing but noise to its fusion
 MIN_PIXELS = 16
+# the finest object voxel is its bounding-box diagonal over this (a 10 cm thing: 0.4 mm, a 40 cm
+# ball: 2.8 mm): detail below it is under the 1 cm scale anyone scores or simulates objects at
+MAX_VOXELS_PER_DIAGONAL = 250
 
 
 @dataclass
@@ -188,17 +191,26 @@ def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float
     from psimap.render import rasterize
 
     means = surfels["means"].detach().to(torch.float32)
-    # voxel: half the median surfel radius... bounded below by what the renders can resolve
-    voxel = float(torch.median(surfels["scales"].detach().max(dim=1).values)) * 0.75
-    depths, Ks, c2ws, cols = [], [], [], []
+    footprints = []         # (view, metres per pixel at the instance's median depth)
     for v in views:
+        pc = transform_points(means.numpy().astype(np.float64), np.linalg.inv(v.c2w))
+        z = pc[:, 2][pc[:, 2] > 1e-3]
+        if len(z):
+            footprints.append((v, float(np.median(z)) / float(v.K[0, 0])))
+    if not footprints:
+        return None
+    # voxel: 3/4 of the median surfel radius (the finest detail the map holds), but never finer than
+    # the supersampled renders resolve (finer voxels only fuse holes and noise) nor than
+    # MAX_VOXELS_PER_DIAGONAL across the instance (a 40 cm ball of 2 mm surfels would otherwise fuse
+    # a million faces for minutes and can exhaust the voxel hash map)
+    voxel = float(torch.median(surfels["scales"].detach().max(dim=1).values)) * 0.75
+    finest_render = min(f * max(v.depth.shape) / max_side for v, f in footprints)
+    diagonal = float(np.linalg.norm(np.ptp(means.numpy(), axis=0))) if len(means) > 1 else 0.0
+    voxel = max(voxel, px_per_voxel * finest_render, diagonal / MAX_VOXELS_PER_DIAGONAL)
+    depths, Ks, c2ws, cols = [], [], [], []
+    for v, footprint in footprints:
         h, w = v.depth.shape
         cam = np.linalg.inv(v.c2w)
-        pc = transform_points(means.numpy().astype(np.float64), cam)
-        z = pc[:, 2][pc[:, 2] > 1e-3]
-        if len(z) == 0:
-            continue
-        footprint = float(np.median(z)) / float(v.K[0, 0])
         scale = min(max(1.0, px_per_voxel * footprint / voxel), max_side / max(h, w))
         K = scale_intrinsics(v.K, scale)
         W, H = int(round(w * scale)), int(round(h * scale))

@@ -372,3 +372,43 @@ def test_rest_on_support_gives_a_resting_ball_a_base_under_its_com():
     box = trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([0, 0, 0.05])
     assert rest_on_support(box, 0.0) == (box, False)                         # already stands
     assert rest_on_support(ball.copy().apply_translation([0, 0, 0.2]), 0.0)[1] is False   # not resting
+
+
+def test_fused_instance_voxel_is_bounded_by_size_and_renders():
+    """Issue #17: a 37 cm ball of 1 mm surfels fused at 0.75 mm voxels gave ~800k faces (minutes,
+    or no surface when the voxel hash map gave up). The voxel stays at or above the instance's
+    diagonal / MAX_VOXELS_PER_DIAGONAL and what the supersampled renders resolve."""
+    import torch
+
+    from psimap.camera import look_at
+    from psimap.exporters.instance_meshes import MAX_VOXELS_PER_DIAGONAL, fuse_instance
+    from psimap.exporters.texture import View
+    from psimap.transforms import rotmat_to_quat
+
+    r = 0.185
+    sphere = trimesh.creation.icosphere(4, radius=r).apply_translation([0, 0, r])
+    pts, fi = trimesh.sample.sample_surface_even(sphere, 20000, seed=0)
+    n = sphere.face_normals[fi]
+    # discs tangent to the sphere: any frame whose third axis is the normal
+    a = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    R = np.stack([a, np.cross(n, a), n], axis=2)
+    sizes = {"tiny": 0.001, "coarse": 0.006}
+    K = np.array([[280.0, 0, 160], [0, 280.0, 120], [0, 0, 1]])
+    views = [View(np.zeros((240, 320, 3), np.float32), np.zeros((240, 320), np.float32), K,
+                  look_at(np.array([1.1 * np.cos(t), 1.1 * np.sin(t), 1.0]), np.array([0, 0, r])))
+             for t in np.linspace(0, 2 * np.pi, 6, endpoint=False)]
+    voxels, faces = {}, {}
+    for name, radius in sizes.items():
+        surfels = {"means": torch.as_tensor(pts, dtype=torch.float32),
+                   "quats": torch.as_tensor(rotmat_to_quat(R), dtype=torch.float32),
+                   "scales": torch.full((len(pts), 2), radius), "opacities": torch.full((len(pts),), 0.95),
+                   "colors": torch.full((len(pts), 3), 0.5)}
+        mesh = fuse_instance(surfels, views, depth_max=5.0)
+        voxels[name], faces[name] = mesh.voxel_size, len(mesh.faces)
+    diag = np.linalg.norm(np.ptp(pts, axis=0))
+    assert voxels["tiny"] >= diag / MAX_VOXELS_PER_DIAGONAL - 1e-9
+    # render-limited: 640 px across at ~1.2 m with f = 560 px -> ~2 mm pixels, voxel 1.5 px
+    assert voxels["tiny"] > 2.5e-3, voxels
+    assert voxels["coarse"] == pytest.approx(0.75 * 0.006, rel=1e-4)       # the surfel rule when coarser
+    assert faces["tiny"] < 150_000, faces
