@@ -113,6 +113,22 @@ def test_skipped_prediction_is_attributed_to_a_missed_thing_of_its_class():
     assert row(res, 1)["role"] == "n/a" and res["summary"]["n_skipped"] == 1 and res["false_objects"] == []
 
 
+def test_sample_count_follows_the_error_budget():
+    """The count starts at one point per (2 cm)^2 (at least 500) and doubles until every share's
+    standard error is within 0.5 points: a share of 0.66 needs 0.66 * 0.34 / 0.005^2 = 8976 points,
+    i.e. 16 000 after doubling from 500; shares of 1 need no more than the first draw."""
+    from psimap.metrics.geometry import raycasting_scene
+    from psimap.metrics.objects import distances_within_budget
+
+    def count(p, g):
+        samples = SurfaceSamples(np.asarray(p.vertices, float), np.asarray(p.faces), (0, 0, 0))
+        return len(distances_within_budget(samples, raycasting_scene(np.asarray(g.vertices, float), np.asarray(g.faces))))
+
+    assert count(cube(at=(0.02, 0, 0)), cube()) == 16_000
+    assert count(cube(at=(0.005, 0, 0)), cube()) == 500
+    assert count(cube(1.0), cube(1.0)) == 15_000            # 6 m^2 at (2 cm)^2
+
+
 def test_deterministic_and_seeded():
     gt = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
     p = trimesh.creation.icosphere(subdivisions=3, radius=0.057)
@@ -242,6 +258,8 @@ def test_export_folder_rows_roles_and_false_objects(upright):
     assert table["static_class"] and "furniture" in table["reason"]
     assert box["found"] and box["prediction"] == "box_12" and box["role"] == "dynamic" and box["reason"] is None
     assert box["fscore_25mm"] > 0.85 and box["observed_completeness_25mm"] > 0.9
+    # the ring of cameras sees all but the bottom: 376 of 472 cm^2
+    assert 0.72 < box["seen_fraction"] <= 0.80 and abs(box["size_m"] - np.linalg.norm([0.12, 0.08, 0.07])) < 1e-6
     assert box["gt_mass_kg"] == 0.2 and box["mass_kg"] > 0 and abs(box["mass_error"] - (box["mass_kg"] / 0.2 - 1)) < 1e-9
     assert not ball["found"] and ball["fscore_10mm"] == 0 and ball["role"] == "n/a"
     s = res["objects"]["summary"]
@@ -267,7 +285,7 @@ def test_turned_capture_gives_the_same_scores(exported, upright):
             assert abs(t[k] - x[k]) < 0.02, (x["class"], k, t[k], x[k])
 
 
-def test_checkpoint_objects_of_a_turned_capture(exported, upright, monkeypatch, capsys):
+def test_checkpoint_objects_of_a_turned_capture(exported, upright, monkeypatch, capsys, tmp_path):
     """`--objects` on a checkpoint: the objects the export would make (extracted Z-up, turned back into
     the capture's frame), no roles, beside the checkpoint's geometry; then the table output."""
     import functools
@@ -279,9 +297,11 @@ def test_checkpoint_objects_of_a_turned_capture(exported, upright, monkeypatch, 
     monkeypatch.setattr(psimap.api, "predicted_objects",
                         functools.partial(psimap.api.predicted_objects, completion="none"))
     data, _, ckpt = exported["turned"]
-    assert main(["eval", str(ckpt), str(data), "--objects", "--json", "--samples", "20000"]) == 0
+    plot = tmp_path / "eval.png"
+    assert main(["eval", str(ckpt), str(data), "--objects", "--json", "--samples", "20000", "--plot", str(plot)]) == 0
     res = json.loads(capsys.readouterr().out)
-    assert res["geometry"]["f1"] > 0.9
+    assert res["geometry"]["f1"] > 0.9 and res["panoptic"]["pq"] > 0.5
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval_geometry.png", "eval_objects.png", "eval_panoptic.png"]
     rows = {x["class"]: x for x in res["objects"]["per_object"]}
     for x in upright[0]["objects"]["per_object"]:
         r = rows[x["class"]]

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from psimap import PsimapError
+from psimap.metrics.geometry import load_mesh
 
 MESH_SUFFIXES = (".ply", ".obj", ".glb", ".gltf", ".off", ".stl")
 GEOMETRY_KEYS = ("accuracy", "completeness", "chamfer_l1", "precision", "recall", "f1", "threshold",
@@ -37,22 +38,6 @@ PANOPTIC_KEYS = ("pq", "sq", "rq", "miou", "macc", "mcov", "mwcov", "pq_frame", 
 
 # --------------------------------------------------------------------------------------------------
 # reading predictions
-
-
-def load_mesh(path: str | os.PathLike):
-    """A mesh file -> trimesh.Trimesh (scenes are flattened with their transforms)."""
-    import trimesh
-
-    path = Path(path)
-    if not path.is_file():
-        raise PsimapError(f"missing mesh file: {path}")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types on malformed files
-        raise PsimapError(f"cannot read mesh {path}: {type(e).__name__}: {e}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise PsimapError(f"mesh {path} has no triangles")
-    return mesh
 
 
 def _read_panoptic_png(path: Path) -> np.ndarray:
@@ -310,14 +295,18 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
         raise PsimapError(f"{root / 'gt'}: nothing to evaluate {pred} against (needs gt/mesh.ply, or "
                           f"gt/semantic label maps and a checkpoint with panoptic labels)")
     out = {}
+    parts = [p for p, do in (("geometry", do_geometry), ("panoptic", do_panoptic), ("objects", things)) if do]
+
+    def plot_of(part):         # one plot keeps the name asked for, several are told apart
+        return plot_path(plot, part) if plot and len(parts) > 1 else plot
+
     if things is not None:
-        out["objects"] = evaluate_objects(objects, things, seed=seed, plot=plot and plot_path(plot, "objects"))
+        out["objects"] = evaluate_objects(objects, things, seed=seed, plot=plot_of("objects"))
     if do_geometry:
-        plot_geo = plot_path(plot, "geometry") if plot and do_panoptic else plot
         out["geometry"] = evaluate_geometry(scene.mesh(), data, threshold=threshold, samples=samples,
-                                            seed=seed, plot=plot_geo, progress=progress)
+                                            seed=seed, plot=plot_of("geometry"), progress=progress)
     if do_panoptic:
-        plot_pan = plot_path(plot, "panoptic") if plot and do_geometry else plot
+        plot_pan = plot_of("panoptic")
         from psimap.threads import single_threaded
 
         with single_threaded():     # one label render per frame: spinning pools cost more than they give

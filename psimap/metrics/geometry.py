@@ -13,6 +13,7 @@ the unseen part of a partly seen face); accuracy and precision use the whole GT 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +22,24 @@ from psimap.transforms import transform_points
 
 # A camera: (K [3,3], c2w [4,4] OpenCV camera-to-world, width, height).
 Camera = tuple
+
+
+def load_mesh(path, what: str = ""):
+    """A mesh file -> trimesh.Trimesh (scenes are flattened with their transforms); one PsimapError
+    naming the file (and `what` it is) when it is missing, unreadable or holds no triangles."""
+    import trimesh
+
+    path = Path(path)
+    of = f" ({what})" if what else ""
+    if not path.is_file():
+        raise PsimapError(f"missing mesh file: {path}{of}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on malformed files
+        raise PsimapError(f"cannot read mesh {path}{of}: {type(e).__name__}: {e}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise PsimapError(f"mesh {path}{of} has no triangles")
+    return mesh
 
 
 def _mesh_arrays(mesh, what: str) -> tuple[np.ndarray, np.ndarray]:

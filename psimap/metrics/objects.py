@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from psimap import PsimapError
-from psimap.metrics.geometry import face_areas, raycasting_scene, sample_surface
+from psimap.metrics.geometry import face_areas, load_mesh, raycasting_scene, sample_surface
 
 THRESHOLDS = (0.01, 0.025)      # metres: the F-scores and completeness reported per object
 MATCH_THRESHOLD = 0.025         # metres: the F-score that decides the matching
@@ -92,7 +92,8 @@ class SurfaceSamples:
             self.drawn += k
             if self.point_filter is not None:
                 pts = pts[self.point_filter(pts, fid)]
-            self.points = np.concatenate([self.points, pts[:need]])
+            # all kept points stay (beyond n too): their share of the drawn ones is the seen share
+            self.points = np.concatenate([self.points, pts])
             if self.drawn >= 50 * max(n, MIN_SAMPLES) and len(self.points) < n:
                 break       # a sliver of surface: what was kept is all there is
         return self.points[:n]
@@ -150,28 +151,16 @@ class GTThing:
 
     @property
     def seen_fraction(self) -> float:
+        """Share of its surface in gt/mesh.ply that some camera sees (seen faces, times the share of
+        points on them a camera sees)."""
         if self.observed is None or self.scene_area <= 0:
             return 0.0
+        self.observed.first(MIN_SAMPLES)       # no matching candidate may have drawn any yet
         return float(self.observed.area * self.observed.accepted_share / self.scene_area)
 
 
 # --------------------------------------------------------------------------------------------------
 # reading
-
-
-def _load_obj(path: Path, what: str):
-    """A mesh file -> trimesh.Trimesh (one clear error when it is missing or holds no triangles)."""
-    import trimesh
-
-    if not path.is_file():
-        raise PsimapError(f"missing mesh file: {path} ({what})")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types on malformed files
-        raise PsimapError(f"cannot read mesh {path} ({what}): {type(e).__name__}: {e}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise PsimapError(f"mesh {path} ({what}) has no triangles")
-    return mesh
 
 
 def read_export(folder) -> list[PredictedObject]:
@@ -188,11 +177,13 @@ def read_export(folder) -> list[PredictedObject]:
         entries, skipped = report["objects"], report.get("skipped", [])
         gravity = report.get("gravity") or {}
         R = np.asarray(gravity.get("rotation", np.eye(3)), np.float64).reshape(3, 3)
+        if not (np.isfinite(R).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-6)):
+            raise PsimapError(f"{rpath}: gravity.rotation is not a rotation")
         not_dynamic = set((report.get("outcome") or {}).get("not_dynamic", {}))
         out = []
         for e in entries:
             mesh_file = (e.get("files") or {}).get("mesh", f"meshes/{e['name']}.obj")
-            mesh = _load_obj(folder / mesh_file, f"object {e['name']} of {rpath}")
+            mesh = load_mesh(folder / mesh_file, f"object {e['name']} of {rpath}")
             # exported = R @ capture, so capture = R^T @ exported (row vectors: v @ R)
             mesh.vertices = np.asarray(mesh.vertices, np.float64) @ R
             static = bool(e.get("static"))
@@ -209,8 +200,6 @@ def read_export(folder) -> list[PredictedObject]:
                                 reason=str(s.get("reason", ""))) for s in skipped]
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
         raise PsimapError(f"{rpath}: not a psimap export report ({type(e).__name__}: {e})") from None
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-        raise PsimapError(f"{rpath}: gravity.rotation is not a rotation")
     return out
 
 
@@ -245,7 +234,7 @@ def read_gt_things(root, cameras, classes, *, seed: int = 0, progress: bool = Fa
         if iid not in gt.objects:
             raise PsimapError(f"{gt_dir / 'objects' / f'{iid}.ply'} not found: thing {iid} "
                               f"({r.get('name') or class_name.get(r['semantic'], '')}) has no complete GT mesh")
-        mesh = _load_obj(gt.objects[iid], f"GT object {iid}")
+        mesh = load_mesh(gt.objects[iid], f"GT object {iid}")
         observed, scene_area = None, 0.0
         if vis is not None:
             mine = gt.face_instance == iid
@@ -254,6 +243,9 @@ def read_gt_things(root, cameras, classes, *, seed: int = 0, progress: bool = Fa
                 observed = SurfaceSamples(scene_v, scene_f, (seed, 2, k), face_mask=mine & seen,
                                           point_filter=vis.points_seen)
         mass = r.get("mass_kg")
+        if mass is not None and not (isinstance(mass, (int, float)) and mass > 0):
+            raise PsimapError(f"{gt_dir / 'instances.json'}: mass_kg of instance {iid} must be a positive number, "
+                              f"got {mass!r}")
         things.append(GTThing(id=iid, label=class_name.get(r["semantic"], r.get("name", "")), name=r.get("name", ""),
                               mesh=mesh, observed=observed, scene_area=scene_area,
                               mass_kg=None if mass is None else float(mass)))
