@@ -350,9 +350,11 @@ def test_bad_inputs_are_one_line(exported, tmp_path):
         r = cli("eval", *args)
         assert r.returncode == 1 and "gt/objects not found" in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1
-    # --objects with a mesh file
+    # --objects with a mesh file; no samples
     r = cli("eval", data / "gt" / "mesh.ply", data, "--objects")
     assert r.returncode == 1 and "--objects needs a checkpoint" in r.stderr
+    r = cli("eval", export, data, "--samples", "0")
+    assert r.returncode == 1 and "samples must be positive" in r.stderr
 
 
 def test_read_export_roles_masses_and_frame(tmp_path):

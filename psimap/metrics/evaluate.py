@@ -184,13 +184,15 @@ def gt_things(data, *, seed=0, progress=False) -> list:
     return read_gt_things(seq.root or data, cameras_of(seq), seq.classes or [], seed=seed, progress=progress)
 
 
-def evaluate_objects(predicted, things, *, seed=0, plot=None) -> dict:
+def evaluate_objects(predicted, things, *, seed=0, samples=200_000, plot=None) -> dict:
     """Object metrics of predicted objects (a list of psimap.metrics.objects.PredictedObject, or a
-    callable returning one) against the GT things of `gt_things`."""
+    callable returning one) against the GT things of `gt_things`; at most `samples` points per
+    surface (psimap.metrics.objects.MAX_SAMPLES at most)."""
+    from psimap.metrics.objects import MAX_SAMPLES, plot_objects
     from psimap.metrics.objects import evaluate_objects as object_metrics
-    from psimap.metrics.objects import plot_objects
 
-    out = object_metrics(predicted() if callable(predicted) else predicted, things, seed=seed)
+    out = object_metrics(predicted() if callable(predicted) else predicted, things, seed=seed,
+                         max_samples=min(int(samples), MAX_SAMPLES))
     if plot:
         plot_objects(out, plot)
     return out
@@ -301,7 +303,7 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
         return plot_path(plot, part) if plot and len(parts) > 1 else plot
 
     if things is not None:
-        out["objects"] = evaluate_objects(objects, things, seed=seed, plot=plot_of("objects"))
+        out["objects"] = evaluate_objects(objects, things, seed=seed, samples=samples, plot=plot_of("objects"))
     if do_geometry:
         out["geometry"] = evaluate_geometry(scene.mesh(), data, threshold=threshold, samples=samples,
                                             seed=seed, plot=plot_of("geometry"), progress=progress)
@@ -336,6 +338,8 @@ def evaluate(pred, data, *, threshold: float = 0.05, samples: int = 200_000, see
     """
     if not (threshold > 0 and math.isfinite(threshold)):
         raise PsimapError(f"threshold must be a positive number of metres, got {threshold}")
+    if samples < 1:
+        raise PsimapError(f"samples must be positive, got {samples}")
     kw = dict(progress=progress, plot=plot)
     if objects is not None and (hasattr(pred, "faces") or Path(pred).suffix.lower() != ".ckpt"):
         raise PsimapError("predicted objects go with a checkpoint (.ckpt); an export folder brings its own")
@@ -348,7 +352,7 @@ def evaluate(pred, data, *, threshold: float = 0.05, samples: int = 200_000, see
         from psimap.metrics.objects import read_export
 
         things = gt_things(data, seed=seed, progress=progress)
-        return {"objects": evaluate_objects(read_export(pred), things, seed=seed, plot=plot)}
+        return {"objects": evaluate_objects(read_export(pred), things, seed=seed, samples=samples, plot=plot)}
     if pred.is_dir():
         return {"panoptic": evaluate_panoptic(pred, data, **kw)}
     suffix = pred.suffix.lower()
