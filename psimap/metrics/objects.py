@@ -421,7 +421,7 @@ def plot_objects(result: dict, path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FormatStrFormatter
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
     from psimap.io_utils import save_figure
 
@@ -439,8 +439,9 @@ def plot_objects(result: dict, path) -> None:
                     xytext=(3, 3), textcoords="offset points")
     s = result["summary"]
     ax.set_xscale("log")
+    ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))     # 0.1 0.2 0.5 1 2 m
     ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
-    ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(-0.03, 1.05)
     ax.set_xlabel("GT object size (bounding-box diagonal, m)")
     ax.set_ylabel("F-score against the complete GT object")
