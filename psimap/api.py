@@ -22,3 +22,34 @@ class Scene(scene.Scene):
 
         scene, _ = gravity_aligned(self, up)
         return extract_objects(scene, **kw)
+
+
+def predicted_objects(path, up: str = "auto", *, completion: str = "auto", progress: bool = False) -> list:
+    """The objects `psimap export` makes of checkpoint `path`, for the object metrics
+    (psimap.metrics.objects.PredictedObject: name, class, mesh), in the capture's frame (that of the
+    checkpoint and of its DATA): extracted Z-up as the export does (`up`), then turned back.
+
+    Skipped objects come without a mesh, with the reason. Roles are left "n/a": the export decides
+    them (static furniture, too little evidence, the settle check's pins); the mass is the export's.
+    """
+    import numpy as np
+
+    from psimap.exporters.objects import extract_scene
+    from psimap.exporters.pipeline import gravity_aligned
+    from psimap.exporters.roles import Reason, Role
+    from psimap.metrics.objects import PredictedObject
+
+    turned, est = gravity_aligned(scene.load_scene(path), up)
+    objs, _, _ = extract_scene(turned, completion=completion, progress=progress)
+    out = []
+    for o in objs:
+        if o.reason is Reason.ENVIRONMENT:
+            continue
+        if o.role is Role.SKIPPED:
+            out.append(PredictedObject(o.name, o.label, None, role="skipped", reason=o.why))
+            continue
+        mesh = o.mesh.copy()
+        mesh.vertices = np.asarray(mesh.vertices, np.float64) @ np.asarray(est.rotation, np.float64)  # R^T v
+        out.append(PredictedObject(o.name, o.label, mesh, mass_kg=o.mass if o.physics is not None else None,
+                                   observed_coverage=o.measured.coverage if o.measured.coverage >= 0 else None))
+    return out

@@ -21,8 +21,8 @@ COMMANDS = {
     "mesh": (O.MeshOptions, "psimap.train:cli_mesh", "extract the whole-scene surface mesh"),
     "export": (O.ExportOptions, "psimap.exporters:cli_export",
                "export per-object assets (MJCF / USD / GLB)"),
-    "eval": (O.EvalOptions, "psimap.metrics.evaluate:cli_eval",
-             "geometry + panoptic metrics against ground truth"),
+    "eval": (O.EvalOptions, "psimap.cli:run_eval",
+             "geometry, panoptic and object metrics against ground truth"),
     "labels": (O.LabelsOptions, "psimap.panoptic:cli_labels",
                "3D-consistent 2D panoptic labels (COCO panoptic)"),
 }
@@ -61,6 +61,23 @@ def _version() -> str:
     from psimap import __version__
 
     return f"psimap {__version__}"
+
+
+def run_eval(opts) -> int:
+    """`psimap eval`: the metrics stage's command (psimap.metrics.evaluate.cli_eval). With --objects on a
+    checkpoint, the objects are extracted here, by the export stage, and passed in: a stage never
+    imports a later one, an entry point may."""
+    from pathlib import Path
+
+    from psimap.metrics.evaluate import cli_eval
+
+    objects = None
+    if opts.objects and Path(opts.pred).suffix.lower() == ".ckpt":
+        from psimap.api import predicted_objects
+
+        def objects():      # called once DATA's object ground truth has been read and checked
+            return predicted_objects(opts.pred, progress=True)
+    return cli_eval(opts, objects=objects)
 
 
 def main(argv=None) -> int:

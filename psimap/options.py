@@ -50,14 +50,21 @@ class GenerateOptions:
 
 @dataclass
 class EvalOptions:
-    pred: str = pos("scene.ckpt, a mesh file (.ply/.obj/.glb) or a folder of predicted label PNGs")
+    pred: str = pos("scene.ckpt, a mesh file (.ply/.obj/.glb), an export folder (report.json + meshes/: "
+                    "object metrics) or a folder of predicted label PNGs")
     data: str = pos("scene folder with ground truth under gt/")
     json: bool = opt(False, "print the metrics as JSON")
-    threshold: float = opt(0.05, "distance threshold for precision / recall / F1, metres")
+    threshold: float = opt(0.05, "distance threshold for the geometry's precision / recall / F1, metres "
+                                 "(objects: always 1 and 2.5 cm)")
     samples: int = opt(200_000, "at most this many points sampled on each mesh (fewer once the "
                                 "metrics' standard error is within budget)")
     seed: int = opt(0, "seed for the surface sampling")
-    plot: str = opt("", "also write a PNG: P/R/F1 vs threshold (mesh) or per-class PQ/IoU (labels)")
+    objects: bool = opt(False, "with a checkpoint: also object metrics (its objects extracted as `psimap export` "
+                               "does, matched to DATA's gt/objects: found, F-score at 1 and 2.5 cm, "
+                               "docs/metrics.md); an export folder gets them anyway")
+    plot: str = opt("", "also write a PNG: P/R/F1 vs threshold (mesh), per-class PQ/IoU (labels) or F-score "
+                        "vs object size (objects); a checkpoint's plots get _geometry / _panoptic / _objects "
+                        "added to the name when it has more than one")
     overwrite: bool = overwrite_opt("plot")
 
 

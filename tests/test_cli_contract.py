@@ -54,7 +54,7 @@ CALLS2 = {
 }
 DENSITY = {"cabinet": 321.0}
 # Options a dedicated test file exercises through the console script instead (flag -> where).
-ELSEWHERE = {"overwrite": "tests/test_output_safety.py"}
+ELSEWHERE = {"overwrite": "tests/test_output_safety.py", "objects": "tests/test_metrics_objects.py"}
 
 
 def _run(argv, tmp: Path) -> subprocess.CompletedProcess:

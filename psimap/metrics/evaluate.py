@@ -7,6 +7,10 @@ PRED is
   DATA has gt/mesh.ply, and, when DATA has GT label maps and the checkpoint carries panoptic labels,
   the labels rendered from the scene for every frame of DATA (`psimap.panoptic.labels.render_labels`)
   scored as below;
+  With predicted objects (`objects`: the CLI's --objects, which the entry points extract from the
+  checkpoint), also the object metrics below;
+- an export folder (report.json + meshes/, what `psimap export` writes): object metrics only
+  (psimap.metrics.objects): every GT thing of DATA/gt/objects matched to an exported object;
 - a folder of predicted labels: panoptic against DATA/gt/{semantic,instance}/<stem>.png, either
   COCO panoptic (`panoptic.json` + PNGs whose pixel id = R + 256 G + 256^2 B) or
   `semantic/<stem>.png` + `instance/<stem>.png` (uint16). Frames are matched by stem; a frame with
@@ -23,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from psimap import PsimapError
+from psimap.metrics.geometry import load_mesh
 
 MESH_SUFFIXES = (".ply", ".obj", ".glb", ".gltf", ".off", ".stl")
 GEOMETRY_KEYS = ("accuracy", "completeness", "chamfer_l1", "precision", "recall", "f1", "threshold",
@@ -33,22 +38,6 @@ PANOPTIC_KEYS = ("pq", "sq", "rq", "miou", "macc", "mcov", "mwcov", "pq_frame", 
 
 # --------------------------------------------------------------------------------------------------
 # reading predictions
-
-
-def load_mesh(path: str | os.PathLike):
-    """A mesh file -> trimesh.Trimesh (scenes are flattened with their transforms)."""
-    import trimesh
-
-    path = Path(path)
-    if not path.is_file():
-        raise PsimapError(f"missing mesh file: {path}")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types on malformed files
-        raise PsimapError(f"cannot read mesh {path}: {type(e).__name__}: {e}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise PsimapError(f"mesh {path} has no triangles")
-    return mesh
 
 
 def _read_panoptic_png(path: Path) -> np.ndarray:
@@ -134,7 +123,14 @@ def open_labels(root: str | os.PathLike):
         return _CocoPanoptic(root)
     if (root / "semantic").is_dir():
         return _SemanticInstance(root)
-    raise PsimapError(f"{root}: a label folder needs panoptic.json (COCO panoptic) or semantic/ + instance/")
+    raise PsimapError(f"{root}: a label folder needs panoptic.json (COCO panoptic) or semantic/ + instance/; "
+                      f"an export folder needs report.json")
+
+
+def is_export_folder(path: Path) -> bool:
+    """Whether folder `path` is (or is meant as) an export folder rather than a label folder."""
+    return (path / "report.json").is_file() or ((path / "meshes").is_dir() and not (path / "semantic").is_dir()
+                                                and not (path / "panoptic.json").is_file())
 
 
 # --------------------------------------------------------------------------------------------------
@@ -150,6 +146,15 @@ def _load_data(data):
     return load(data)
 
 
+def cameras_of(seq) -> list:
+    """DATA's cameras: (K [3,3], c2w [4,4] OpenCV, width, height) of every frame."""
+    cameras = []
+    for i in range(len(seq)):
+        f = seq[i]
+        cameras.append((f.K, f.c2w, f.width, f.height))
+    return cameras
+
+
 def evaluate_geometry(pred_mesh, data, *, threshold=0.05, samples=200_000, seed=0, plot=None,
                       progress=False) -> dict:
     """Geometry metrics of `pred_mesh` (trimesh) against DATA/gt/mesh.ply, GT culled by DATA's cameras."""
@@ -161,15 +166,35 @@ def evaluate_geometry(pred_mesh, data, *, threshold=0.05, samples=200_000, seed=
     if gt.mesh is None:
         raise PsimapError(f"{Path(seq.root or data) / 'gt' / 'mesh.ply'} not found: geometry needs the "
                           f"ground-truth mesh")
-    cameras = []
-    for i in range(len(seq)):
-        f = seq[i]
-        cameras.append((f.K, f.c2w, f.width, f.height))
+    cameras = cameras_of(seq)
     out, dist = geometry_metrics(pred_mesh, gt.mesh, threshold=threshold, cameras=cameras,
                                  max_samples=samples, seed=seed, progress=progress,
                                  return_distances=True)
     if plot:
         plot_geometry(dist, plot, threshold)
+    return out
+
+
+def gt_things(data, *, seed=0, progress=False) -> list:
+    """DATA's ground-truth things for the object metrics (psimap.metrics.objects.read_gt_things);
+    checked before any prediction is extracted."""
+    from psimap.metrics.objects import read_gt_things
+
+    seq = _load_data(data)
+    return read_gt_things(seq.root or data, cameras_of(seq), seq.classes or [], seed=seed, progress=progress)
+
+
+def evaluate_objects(predicted, things, *, seed=0, samples=200_000, plot=None) -> dict:
+    """Object metrics of predicted objects (a list of psimap.metrics.objects.PredictedObject, or a
+    callable returning one) against the GT things of `gt_things`; at most `samples` points per
+    surface (psimap.metrics.objects.MAX_SAMPLES at most)."""
+    from psimap.metrics.objects import MAX_SAMPLES, plot_objects
+    from psimap.metrics.objects import evaluate_objects as object_metrics
+
+    out = object_metrics(predicted() if callable(predicted) else predicted, things, seed=seed,
+                         max_samples=min(int(samples), MAX_SAMPLES))
+    if plot:
+        plot_objects(out, plot)
     return out
 
 
@@ -251,9 +276,10 @@ def _has_gt_labels(seq) -> bool:
 
 
 def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, plot=None,
-                        progress=False) -> dict:
+                        progress=False, objects=None) -> dict:
     """Metrics of a scene.ckpt: geometry of its mesh (if DATA has gt/mesh.ply) and panoptic metrics of
-    its rendered labels (if DATA has GT label maps and the checkpoint carries labels)."""
+    its rendered labels (if DATA has GT label maps and the checkpoint carries labels); with `objects`
+    (its predicted objects, or a callable giving them: see evaluate_objects) the object metrics too."""
     from psimap.data.scene_format import read_gt
     from psimap.panoptic.labels import has_labels
 
@@ -261,21 +287,28 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
         from psimap.scene import load_scene
     except ImportError:
         raise PsimapError("evaluating a checkpoint needs the training stage (psimap.scene)") from None
+    things = gt_things(data, seed=seed, progress=progress) if objects is not None else None
     scene = load_scene(pred)
     seq = _load_data(data)
     root = Path(seq.root or data)
     do_geometry = read_gt(root).mesh is not None
     do_panoptic = _has_gt_labels(seq) and has_labels(scene) and bool(scene.classes)
-    if not (do_geometry or do_panoptic):
+    if not (do_geometry or do_panoptic or things):
         raise PsimapError(f"{root / 'gt'}: nothing to evaluate {pred} against (needs gt/mesh.ply, or "
                           f"gt/semantic label maps and a checkpoint with panoptic labels)")
     out = {}
+    parts = [p for p, do in (("geometry", do_geometry), ("panoptic", do_panoptic), ("objects", things)) if do]
+
+    def plot_of(part):         # one plot keeps the name asked for, several are told apart
+        return plot_path(plot, part) if plot and len(parts) > 1 else plot
+
+    if things is not None:
+        out["objects"] = evaluate_objects(objects, things, seed=seed, samples=samples, plot=plot_of("objects"))
     if do_geometry:
-        plot_geo = plot_path(plot, "geometry") if plot and do_panoptic else plot
         out["geometry"] = evaluate_geometry(scene.mesh(), data, threshold=threshold, samples=samples,
-                                            seed=seed, plot=plot_geo, progress=progress)
+                                            seed=seed, plot=plot_of("geometry"), progress=progress)
     if do_panoptic:
-        plot_pan = plot_path(plot, "panoptic") if plot and do_geometry else plot
+        plot_pan = plot_of("panoptic")
         from psimap.threads import single_threaded
 
         with single_threaded():     # one label render per frame: spinning pools cost more than they give
@@ -285,32 +318,46 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
 
 
 def plot_path(plot: str, part: str) -> str:
-    """Where the `part` ("geometry" / "panoptic") plot goes when a checkpoint gets both plots."""
+    """Where the `part` ("geometry" / "panoptic" / "objects") plot goes when a checkpoint gets more than
+    one plot."""
     return str(Path(plot).with_name(Path(plot).stem + "_" + part + Path(plot).suffix))
 
 
 def evaluate(pred, data, *, threshold: float = 0.05, samples: int = 200_000, seed: int = 0,
-             plot: str | None = None, progress: bool = False) -> dict:
+             plot: str | None = None, progress: bool = False, objects=None) -> dict:
     """Metrics of `pred` against the ground truth of scene folder `data`.
 
-    pred: a mesh file path, a trimesh.Trimesh, a `.ckpt` path, or a folder of predicted labels.
-    Returns {"geometry": {...}} for meshes, {"panoptic": {...}} for label folders, and for
-    checkpoints whichever DATA's ground truth and the checkpoint allow (both when possible) (keys: GEOMETRY_KEYS / PANOPTIC_KEYS, plus "per_class" for panoptic). `samples` caps the points
-    sampled on each mesh (fewer are used once the error budget is met).
+    pred: a mesh file path, a trimesh.Trimesh, a `.ckpt` path, an export folder or a folder of
+    predicted labels. Returns {"geometry": {...}} for meshes, {"panoptic": {...}} for label folders,
+    {"objects": {...}} for export folders, and for checkpoints whichever DATA's ground truth and the
+    checkpoint allow (both when possible) (keys: GEOMETRY_KEYS / PANOPTIC_KEYS, plus "per_class" for
+    panoptic; psimap.metrics.objects.evaluate_objects for objects). `samples` caps the points sampled
+    on each mesh (fewer are used once the error budget is met). objects: a checkpoint's predicted
+    objects (list of psimap.metrics.objects.PredictedObject in DATA's frame, or a callable returning
+    it, called once DATA's object ground truth is read): adds {"objects": ...}.
     """
     if not (threshold > 0 and math.isfinite(threshold)):
         raise PsimapError(f"threshold must be a positive number of metres, got {threshold}")
+    if samples < 1:
+        raise PsimapError(f"samples must be positive, got {samples}")
     kw = dict(progress=progress, plot=plot)
+    if objects is not None and (hasattr(pred, "faces") or Path(pred).suffix.lower() != ".ckpt"):
+        raise PsimapError("predicted objects go with a checkpoint (.ckpt); an export folder brings its own")
     if hasattr(pred, "faces"):
         return {"geometry": evaluate_geometry(pred, data, threshold=threshold, samples=samples, seed=seed, **kw)}
     pred = Path(pred)
     if not pred.exists():
         raise PsimapError(f"no such file or folder: {pred}")
+    if pred.is_dir() and is_export_folder(pred):
+        from psimap.metrics.objects import read_export
+
+        things = gt_things(data, seed=seed, progress=progress)
+        return {"objects": evaluate_objects(read_export(pred), things, seed=seed, samples=samples, plot=plot)}
     if pred.is_dir():
         return {"panoptic": evaluate_panoptic(pred, data, **kw)}
     suffix = pred.suffix.lower()
     if suffix == ".ckpt":
-        return evaluate_checkpoint(pred, data, threshold=threshold, samples=samples, seed=seed, **kw)
+        return evaluate_checkpoint(pred, data, threshold=threshold, samples=samples, seed=seed, objects=objects, **kw)
     if suffix in MESH_SUFFIXES:
         mesh = load_mesh(pred)
     else:
@@ -368,6 +415,8 @@ def to_json(result: dict) -> str:
         p = result["panoptic"]
         out["panoptic"] = {k: p[k] for k in PANOPTIC_KEYS if k in p}
         out["panoptic"]["per_class"] = p.get("per_class", {})
+    if "objects" in result:
+        out["objects"] = result["objects"]
     return json.dumps(_jsonable(out), indent=1)
 
 
@@ -410,18 +459,30 @@ def format_table(result: dict) -> str:
                 lines.append(f"  {label:<16}{'*' if v['isthing'] else ' '} {v['pq']:.4f}  {v['sq']:.4f}  "
                              f"{v['rq']:.4f}  {f(v['iou'])}  {v['tp']:<3} {v['fp']:<3} {v['fn']:<3}")
             lines.append("  (* = thing class)")
+    if "objects" in result:
+        from psimap.metrics.objects import format_objects
+
+        lines += format_objects(result["objects"])
     return "\n".join(lines)
 
 
-def cli_eval(opts) -> int:
-    """`psimap eval PRED DATA [--json]`."""
+def cli_eval(opts, objects=None) -> int:
+    """`psimap eval PRED DATA [--json] [--objects]`. objects: the checkpoint's predicted objects, or a
+    callable giving them (the entry point extracts them: psimap.cli.run_eval)."""
     if getattr(opts, "plot", ""):
         from psimap.io_utils import check_output_file
 
-        for p in (opts.plot, plot_path(opts.plot, "geometry"), plot_path(opts.plot, "panoptic")):
+        for p in (opts.plot, *(plot_path(opts.plot, part) for part in ("geometry", "panoptic", "objects"))):
             check_output_file(p, overwrite=opts.overwrite, what="--plot")     # before the work
+    if getattr(opts, "objects", False):
+        pred = Path(opts.pred)
+        if pred.suffix.lower() != ".ckpt" and not (pred.is_dir() and is_export_folder(pred)):
+            raise PsimapError(f"{pred}: --objects needs a checkpoint (.ckpt) or an export folder")
+        if pred.suffix.lower() == ".ckpt" and objects is None:
+            raise PsimapError("--objects on a checkpoint needs the entry point that extracts its objects "
+                              "(psimap.cli.run_eval)")
     result = evaluate(opts.pred, opts.data, threshold=opts.threshold, samples=opts.samples,
-                      seed=opts.seed, plot=getattr(opts, "plot", "") or None, progress=True)
+                      seed=opts.seed, plot=getattr(opts, "plot", "") or None, progress=True, objects=objects)
     print(to_json(result) if opts.json else format_table(result))
     if result.get("panoptic", {}).get("missing_frames") and opts.json:
         print(f"warning: {len(result['panoptic']['missing_frames'])} frames had no prediction "

@@ -13,6 +13,7 @@ the unseen part of a partly seen face); accuracy and precision use the whole GT 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +22,24 @@ from psimap.transforms import transform_points
 
 # A camera: (K [3,3], c2w [4,4] OpenCV camera-to-world, width, height).
 Camera = tuple
+
+
+def load_mesh(path, what: str = ""):
+    """A mesh file -> trimesh.Trimesh (scenes are flattened with their transforms); one PsimapError
+    naming the file (and `what` it is) when it is missing, unreadable or holds no triangles."""
+    import trimesh
+
+    path = Path(path)
+    of = f" ({what})" if what else ""
+    if not path.is_file():
+        raise PsimapError(f"missing mesh file: {path}{of}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on malformed files
+        raise PsimapError(f"cannot read mesh {path}{of}: {type(e).__name__}: {e}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise PsimapError(f"mesh {path}{of} has no triangles")
+    return mesh
 
 
 def _mesh_arrays(mesh, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +89,9 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
     return (pts, idx) if return_faces else pts
 
 
-def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
+def raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
+    """Open3D's BVH over triangles (vertices [V,3], faces [F,3]): ray casts and exact point-to-mesh
+    distances (`compute_distance`)."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -117,7 +138,7 @@ class CameraVisibility:
             self.cameras.append((np.asarray(K, np.float64), np.asarray(c2w, np.float64), int(w), int(h)))
         self.max_depth = max_depth
         self.progress = progress
-        self._scene = _raycasting_scene(self.vertices, self.faces)
+        self._scene = raycasting_scene(self.vertices, self.faces)
 
     def _cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Hit face [N] int64 (-1 = none or beyond max_depth) and hit z-depth [N] of rays [N, 6]."""
@@ -262,8 +283,8 @@ def surface_distances(pred, gt, *, gt_visible: np.ndarray | None = None, gt_poin
     rng = np.random.default_rng(seed)
     budget = dict(thresholds=tuple(thresholds), max_samples=max_samples, min_samples=min_samples,
                   rel_tol=rel_tol, abs_tol=abs_tol, frac_tol=frac_tol)
-    d_pg, _ = _adaptive_distances(pv, pf, _raycasting_scene(gv, gf), rng, None, None, **budget)
-    d_gp, rate = _adaptive_distances(gv, gf, _raycasting_scene(pv, pf), rng, gt_visible,
+    d_pg, _ = _adaptive_distances(pv, pf, raycasting_scene(gv, gf), rng, None, None, **budget)
+    d_gp, rate = _adaptive_distances(gv, gf, raycasting_scene(pv, pf), rng, gt_visible,
                                      gt_point_filter, **budget)
     seen_area = gt_areas[gt_visible].sum() if gt_visible is not None else gt_areas.sum()
     return SurfaceDistances(pred_to_gt=d_pg, gt_to_pred=d_gp,
