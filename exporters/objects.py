@@ -127,7 +127,7 @@ def build_object(mesh, label: str, instance_id: int, *, semantic_id: int = 0, vi
 
 def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, completion: str = "auto",
                   context=None, support_z: float | None = None, surfel_points=None, carve_views=None,
-                  resolution: float | None = None) -> SceneObject:
+                  resolution: float | None = None, open_under: float | None = None) -> SceneObject:
     """Steps 2-3: clean, complete and close `mesh` into a sound watertight solid (obj.mesh), or an
     object with role Role.SKIPPED. The solid can still be edited (overlaps, support) before
     `finish_object`.
@@ -137,7 +137,8 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
     psimap.completion.CompletionContext of the object (its label and method are set here).
     With `resolution` (the source's voxel) an open scan is closed as the voxel solid it encloses
     (exporters.solidify), carved by `carve_views` (texture.View) around `surfel_points` [P, 3], down
-    to the support plane at height `support_z`, on which the solid is then made to rest.
+    to the support plane at height `support_z`, on which the solid is then made to rest; below a
+    furniture top at height `open_under` only what its observed sides enclose is solid.
     """
     from psimap.exporters.repair import repair_mesh
 
@@ -168,7 +169,7 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         from psimap.exporters.solidify import solid_pitch
 
         solid_kw = {"pitch": solid_pitch(m, resolution), "support_z": support, "points": surfel_points,
-                    "views": carve_views}
+                    "views": carve_views, "open_under": open_under}
     rep = repair_mesh(m, need_volume=True, **solid_kw)
     obj.measured.repair_steps = pre.steps + rep.steps
     if not rep.ok and obj.measured.completed:         # a bad completion must not lose the object
@@ -553,7 +554,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         surfel_points = disc_points(*(sf[k][members] for k in ("means", "quats", "scales", "opacities")))
         objs.append(prepare_solid(item.mesh, item.label, item.instance_id, semantic_id=item.semantic_id,
                                   completion=completion, context=context, support_z=support,
-                                  surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size))
+                                  surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size,
+                                  open_under=max((t.height for t in tops.get(item.instance_id, [])), default=None)))
         objs[-1].surfel_count = int(np.count_nonzero(members))
         surfels_of[item.instance_id] = surfel_points
         if item.dropped_surfels:

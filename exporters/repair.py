@@ -105,7 +105,7 @@ def _tetwild_surface(mesh, edge_fraction: float):
 def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
                 keep_fraction: float = KEEP_COMPONENT_AREA_FRACTION,
                 allow_tetwild: bool = False, pitch: float | None = None, support_z: float | None = None,
-                points: np.ndarray | None = None, views=None) -> RepairResult:
+                points: np.ndarray | None = None, views=None, open_under: float | None = None) -> RepairResult:
     """Clean `mesh` (trimesh.Trimesh, metres) for export.
 
     need_volume: the object is dynamic and needs mass, so it must be watertight with positive
@@ -115,8 +115,8 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
     with fTetWild (robust, but minutes per object on a laptop CPU, hence off by default).
     pitch: voxel size (m) of a fused source; when given, an open mesh is closed as the voxel solid
     it encloses (exporters.solidify, resting on the plane z = support_z when given, with the extra
-    observed surface points [P, 3], carved by the free space of `views` when given) before ear-cut
-    hole filling is tried.
+    observed surface points [P, 3], carved by the free space of `views` when given, opened under a
+    furniture top at height `open_under`) before ear-cut hole filling is tried.
     """
     import trimesh
 
@@ -140,7 +140,7 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
     if not m.is_watertight and pitch is not None:
         from psimap.exporters.solidify import solidify
 
-        solid = solidify(m, float(pitch), support_z, points=points, views=views)
+        solid = solidify(m, float(pitch), support_z, points=points, views=views, open_under=open_under)
         if solid is not None:
             m = solid
             steps.append({"carved": f"carved from the views' free space ({pitch * 1000:.1f} mm voxels)",
