@@ -30,6 +30,7 @@ class InstanceMesh:
     mesh: object            # trimesh.Trimesh or None
     support_z: float | None = None   # height of the up-facing stuff surface under it (world z)
     dropped_surfels: int = 0         # surfels of this label away from its main body (not fused)
+    why_empty: str = ""              # why no surface was fused (mesh None or empty), for the report
     members: np.ndarray | None = None  # [N] bool: the surfels of its main body
 
 
@@ -115,6 +116,9 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
     for t in things:
         seen = [k for k, m in enumerate(maps) if int((m == t.instance_id).sum()) >= MIN_PIXELS]
         if not seen:
+            most = max((int((m == t.instance_id).sum()) for m in maps), default=0)
+            t.why_empty = (f"its {int((iid == t.instance_id).sum())} surfels win at most {most} pixels of a "
+                           f"view (< {MIN_PIXELS}): hidden behind other labels")
             continue
         sel = main_body(s["means"], s["scales"], iid == t.instance_id)
         t.dropped_surfels = int((iid == t.instance_id).sum() - sel.sum())
@@ -123,8 +127,13 @@ def instance_meshes(scene, *, cameras=None, voxel_size: float | None = None,
             t.mesh = fuse_instance({k: s[k][torch.as_tensor(sel)] for k in ("means", "quats", "scales",
                                                                             "opacities", "colors")},
                                    [views[k] for k in seen], depth_max=params.depth_max)
-        except RuntimeError:    # Open3D aborts when the masked depth touches no voxel block
-            t.mesh = None
+        except RuntimeError as e:    # Open3D aborts when the masked depth touches no voxel block
+            t.mesh, t.why_empty = None, f"TSDF fusion failed: {str(e).strip().splitlines()[-1][:120]}"
+        if t.mesh is None and not t.why_empty:
+            t.why_empty = (f"rendered alone, its {int(sel.sum())} surfels cover fewer than {MIN_PIXELS} pixels "
+                           f"at opacity >= {MIN_ALPHA} in every view")
+        elif t.mesh is not None and len(t.mesh.faces) == 0:
+            t.why_empty = "the TSDF of its renders holds no surface"
     # support-aware bottoms: the discs of the sides hang below the support; cut every object at the
     # up-facing stuff surface under it (floor, table) and cap it there, so it rests on its support
     up = surfel_normals(s["quats"])[:, 2] > 0.9

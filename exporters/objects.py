@@ -539,7 +539,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     for item in tqdm(inst.things, desc="object solids", disable=not progress, leave=False):
         if item.mesh is None or len(item.mesh.faces) == 0:
             objs.append(SceneObject(item.instance_id, item.label, item.mesh, semantic_id=item.semantic_id))
-            objs[-1].skip(Reason.NO_SURFACE, "no surface fused for this instance")
+            objs[-1].skip(Reason.NO_SURFACE, "no surface fused for this instance"
+                          + (f": {item.why_empty}" if item.why_empty else ""))
             continue
         views = views_of[item.instance_id] = inst.views_for(item.instance_id)
         members = item.members if item.members is not None else iid == item.instance_id

@@ -412,3 +412,28 @@ def test_fused_instance_voxel_is_bounded_by_size_and_renders():
     assert voxels["tiny"] > 2.5e-3, voxels
     assert voxels["coarse"] == pytest.approx(0.75 * 0.006, rel=1e-4)       # the surfel rule when coarser
     assert faces["tiny"] < 150_000, faces
+
+
+def test_an_instance_with_no_surface_says_why():
+    """Issue #17: "no surface fused for this instance" named no cause. A thing hidden inside
+    another one wins no pixel: the report says so, with its surfel and pixel counts."""
+    from psimap.camera import camera_rig, look_at
+    from psimap.data.frames import ClassInfo
+    from psimap.exporters.instance_meshes import instance_meshes
+    from psimap.scene import scene_from_meshes
+
+    big = trimesh.creation.box(extents=[0.4, 0.4, 0.4]).apply_translation([0, 0, 0.2])
+    hidden = trimesh.creation.icosphere(2, radius=0.05).apply_translation([0, 0, 0.2])
+    floor = trimesh.creation.box(extents=[2, 2, 0.02]).apply_translation([0, 0, -0.01])
+    c2ws = [look_at(np.array([1.2 * np.cos(a), 1.2 * np.sin(a), 0.9]), np.array([0, 0, 0.2]))
+            for a in np.linspace(0, 2 * np.pi, 4, endpoint=False)]
+    classes = [ClassInfo(1, "floor", False), ClassInfo(2, "box", True), ClassInfo(3, "ball", True)]
+    scene = scene_from_meshes([floor, big, hidden], [0, 5, 6], [1, 2, 3], classes, camera_rig(c2ws, 64, 48, 60.0))
+    inst = instance_meshes(scene)
+    by_id = {t.instance_id: t for t in inst.things}
+    assert by_id[5].mesh is not None and len(by_id[5].mesh.faces) and by_id[5].why_empty == ""
+    assert by_id[6].mesh is None and "hidden behind other labels" in by_id[6].why_empty
+    import re
+
+    m = re.match(r"its (\d+) surfels win at most (\d+) pixels", by_id[6].why_empty)
+    assert m and int(m.group(1)) > 0 and int(m.group(2)) < 16
