@@ -29,6 +29,8 @@ from _results import markdown_table, save_plot, write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench_out" / "surfels"
+# Things with less GT surface than this are the "small things" (objects a hand moves, not furniture).
+SMALL_THING_AREA = 0.25
 # A surfel farther than this from every GT surface is a floater: counted in the total, not per object.
 ASSIGN_TOLERANCE = 0.05
 
@@ -141,7 +143,8 @@ def tables(runs: dict) -> tuple[str, str]:
             dt_p, ds_p = density(rec, "prior")
             dt, ds = density(rec, "trained")
             things = sum(c for k, c in rec["trained"].items() if int(k) > 0)
-            summary.append([scene, v, rec["sogmm_K"], rec["n_prior"], rec["n_trained"], things,
+            small = sum(c for k, c in rec["trained"].items() if 0 < areas.get(int(k), 1e9) < SMALL_THING_AREA)
+            summary.append([scene, v, rec["sogmm_K"], rec["n_prior"], rec["n_trained"], things, small,
                             f"{dt_p:.0f} / {ds_p:.0f}", f"{dt:.0f} / {ds:.0f}", f"{rec['f1']:.4f}",
                             f"{rec['chamfer_cm']:.3f}", "-" if rec["pq"] is None else f"{rec['pq']:.3f}",
                             f"{rec['train_cpu_s']:.1f}", f"{rec['train_s']:.1f}",
@@ -149,6 +152,7 @@ def tables(runs: dict) -> tuple[str, str]:
     t1 = markdown_table(["scene", "GT id", "thing", "GT area (cm²)", "prior before", "prior after",
                          "trained before", "trained after"], rows)
     t2 = markdown_table(["scene", "variant", "SOGMM K", "surfels prior", "surfels trained", "on things",
+                         f"on small things (< {SMALL_THING_AREA} m²)",
                          "density prior things / stuff (1/m²)", "density trained things / stuff (1/m²)",
                          "F1@5cm", "Chamfer-L1 (cm)", "PQ", "train CPU (s)", "train wall (s)",
                          "load start / end"], summary)

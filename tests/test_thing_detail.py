@@ -120,8 +120,9 @@ def test_things_get_more_surfels_under_the_same_total(box_frames):
     assert info["n_init"] <= blind["n_init"]                  # the same budget, or less
     box0, floor0 = _density(blind_means)
     box1, floor1 = _density(means)
-    # thing spacing 1.5 px vs 3 px: about 4x the density on the box, the floor gives some up
-    assert box1 > 2.5 * box0 and floor1 < floor0, (box0, box1, floor0, floor1)
+    # thing spacing 2 px vs 3 px: (3 / 2)^2 = 2.25x the density on the box (2.36x measured), the
+    # floor gives up what the box takes (0.73x)
+    assert box1 > 1.9 * box0 and floor1 < 0.85 * floor0, (box0, box1, floor0, floor1)
     assert index.sogmm.detail is not None and blind_index.sogmm.detail is None
     # the box's components are finer than the blind fit's (more of them)
     k_box = int((index.sogmm.detail > 0.5).sum())
@@ -160,7 +161,7 @@ def test_nan_zero_depth_and_empty_masks_keep_the_allocation_working(box_frames):
     means, index, info = _init(bad)
     assert np.isfinite(means).all() and info["n_init"] > 0
     box, floor = _density(means)
-    assert box > 2.5 * floor, (box, floor)
+    assert box > 1.8 * floor, (box, floor)          # 2.1x measured; 0.94x without masks
 
 
 def test_density_control_serves_surfels_on_things_first():
