@@ -5,7 +5,9 @@ Fit: voxel-downsample, seed one component per coarse grid cell, then level by le
 component that is too large, not planar enough, or fits its points worse than the point-to-plane
 budget, along its major axis; a few hard-EM steps restricted to each split pair move points to the
 better child. Given each point's depth-noise std, a component whose residual the noise explains
-stops splitting (noisy planes stay large, well-averaged patches). All components of a level are
+stops splitting (noisy planes stay large, well-averaged patches). Points marked as detail (on
+things, from the 2D masks) also split until their patch is no wider than a given extent, so objects
+get patches at the scale their surfels resolve while walls stay coarse. All components of a level are
 processed at once (moments by np.bincount), so a level costs O(N) and the fit O(N log N). A final
 pass reassigns every point among its nearest components.
 
@@ -47,6 +49,8 @@ class SOGMM:
     [t0, t1, n] is a right-handed rotation); eigvals [K, 3] spatial eigenvalues, descending;
     counts [K] points per component; fit_stats: K, residual_mean (mean point-to-plane distance of
     the fitted points, m), time_s, n_points (after downsampling), and the settings used.
+    detail [K] share of each component's points marked as detail (None when the fit had no marks;
+    not saved by as_arrays).
     """
 
     means: np.ndarray
@@ -57,6 +61,7 @@ class SOGMM:
     eigvals: np.ndarray
     counts: np.ndarray
     fit_stats: dict = field(default_factory=dict)
+    detail: np.ndarray | None = None
 
     @property
     def K(self) -> int:
@@ -248,7 +253,8 @@ def _seed_labels(xyz: np.ndarray, cell_size: float, min_points: int) -> np.ndarr
 
 def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel: float | None = None,
               max_extent: float | None = None, planarity: float = 0.02, residual: float | None = None,
-              min_points: int = 8, em_iters: int = 3, noise: np.ndarray | None = None, seed: int = 0,
+              min_points: int = 8, em_iters: int = 3, noise: np.ndarray | None = None,
+              detail: np.ndarray | None = None, detail_extent: float | None = None, seed: int = 0,
               progress: bool | None = None) -> SOGMM:
     """Fit the SOGMM prior to a point cloud.
 
@@ -272,7 +278,11 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
       noise explains (mean |noise| of its voxel-averaged points, x _NOISE_MARGIN) stops splitting:
       both the residual budget and the planarity test then ask for more than noise, so a noisy
       plane stays one large, well-averaged patch instead of splitting down to min_points.
-    Returns SOGMM. Raises PsimapError on empty / malformed input.
+    detail: [N] bool (or weights in [0, 1]) marking the points where the map needs detail (on
+      things), or None. A component whose points are mostly detail also splits while its side
+      exceeds `detail_extent` (m; required with `detail`), whatever its noise: a small object seen
+      through noise is otherwise one or two flat patches. None gives exactly the fit without it.
+    Returns SOGMM (with .detail [K] when `detail` was given). Raises PsimapError on empty / malformed input.
     """
     del seed  # the fit is deterministic by construction (no sampling)
     t_start = time.perf_counter()
@@ -296,6 +306,14 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
             raise PsimapError(f"noise has {len(noise)} values for {len(pts)} points")
         # carried as a variance column through the NaN filter and the voxel averaging
         pts = np.concatenate([pts, np.nan_to_num(noise, nan=0.0, posinf=0.0)[:, None] ** 2], axis=1)
+    if detail is not None:
+        detail = np.asarray(detail, dtype=np.float64).reshape(-1)
+        if len(detail) != n_input:
+            raise PsimapError(f"detail has {len(detail)} values for {n_input} points")
+        if detail_extent is None or not (detail_extent > 0 and np.isfinite(detail_extent)):
+            raise PsimapError(f"detail_extent must be a positive length with detail, got {detail_extent}")
+        # carried as the last column through the NaN filter and the voxel averaging (a share per voxel)
+        pts = np.concatenate([pts, np.clip(np.nan_to_num(detail, nan=0.0), 0.0, 1.0)[:, None]], axis=1)
     pts, n_dropped = drop_nonfinite(pts)
     if len(pts) == 0:
         why = f" (all {n_input} points were NaN/inf)" if n_input else ""
@@ -317,6 +335,10 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
     counts_in = np.ones(len(pts), np.int64)
     if voxel > 0:
         pts, counts_in = voxel_downsample(pts, voxel, return_counts=True)
+    point_detail = None
+    if detail is not None:
+        point_detail = pts[:, -1]
+        pts = pts[:, :-1]
     point_var = None
     if noise is not None:
         # an average of m independent readings has 1/m of their mean variance
@@ -371,6 +393,9 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
             budget = np.maximum(residual, _NOISE_MARGIN * noise_abs)
             floor = np.maximum(noise_floor, _NOISE_MARGIN * noise_abs)
         want = (extent > max_extent) | (resid > budget) | ((ratio > planarity) & (resid > floor))
+        if point_detail is not None:
+            share = np.bincount(lab, point_detail[pidx], minlength=len(act_ids)) / np.maximum(counts, 1)
+            want |= (share > 0.5) & (extent > detail_extent)
         split = want & (counts >= 2 * min_points)
         active[act_ids[~split]] = False
         if not split.any():
@@ -432,6 +457,9 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
         covs = _regularise(covs, eps_xyz)
 
     eigvals, normals, tangents = _frames(covs[:, :3, :3])
+    comp_detail = None
+    if point_detail is not None:
+        comp_detail = np.bincount(labels, point_detail, minlength=K) / np.maximum(counts, 1)
     d = np.abs(np.einsum("ij,ij->i", X[:, :3] - means[labels, :3], normals[labels]))
     means[:, :3] += centre
     stats = {
@@ -448,8 +476,11 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
         "noise_aware": point_var is not None,
         "levels": levels,
     }
+    if comp_detail is not None:
+        stats["detail_extent"] = float(detail_extent)
+        stats["K_detail"] = int((comp_detail > 0.5).sum())
     return SOGMM(means=means, covs=covs, weights=counts / N, normals=normals, tangents=tangents,
-                 eigvals=eigvals, counts=counts.astype(np.int64), fit_stats=stats)
+                 eigvals=eigvals, counts=counts.astype(np.int64), fit_stats=stats, detail=comp_detail)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -470,12 +501,13 @@ def _allocate(areas: np.ndarray, n_total: int) -> np.ndarray:
 
 
 def sample_surfels(sogmm: SOGMM, n_total: int | None = None, *, density: float | None = None,
-                   seed: int = 0):
+                   relative_density: np.ndarray | None = None, seed: int = 0):
     """Initial surfels drawn from the mixture.
 
     Each component gets a number of surfels proportional to its tangent area 12 sqrt(l0 l1) (so the
     coverage per m^2 is uniform), either `n_total` in all or `density` surfels per m^2 (default:
-    one per component scaled so the mean component gets ~4). Positions are uniform over the
+    one per component scaled so the mean component gets ~4). relative_density [K] (> 0) scales a
+    component's surfels per m^2 against the others' (None = uniform), within the same n_total. Positions are uniform over the
     component's tangent rectangle (side sqrt(12 lambda)) on its plane; rotation is the tangent
     frame [t0, t1, n]; scales split the rectangle among its surfels (sigma = half the spacing along
     each axis); intensity is the 4D Gaussian's grey conditioned on the position.
@@ -488,7 +520,13 @@ def sample_surfels(sogmm: SOGMM, n_total: int | None = None, *, density: float |
         if density is None:
             density = 4.0 * sogmm.K / max(float(areas.sum()), 1e-12)
         n_total = int(round(float(areas.sum()) * density))
-    per = _allocate(areas, int(n_total))
+    if relative_density is not None:
+        rel = np.asarray(relative_density, dtype=np.float64).reshape(-1)
+        if len(rel) != sogmm.K or not (np.isfinite(rel).all() and (rel > 0).all()):
+            raise PsimapError(f"relative_density must be {sogmm.K} positive numbers")
+        per = _allocate(areas * rel, int(n_total))
+    else:
+        per = _allocate(areas, int(n_total))
     comp = np.repeat(np.arange(sogmm.K), per)             # [S]
     S = len(comp)
     uv = (rng.random((S, 2)) - 0.5) * side[comp]

@@ -43,6 +43,17 @@ class TrainConfig:
     prior_noise: bool = _f(True, "the SOGMM fit knows each point's depth noise (sigma(z) estimated "
                                  "from the depth images): a patch whose residual the noise explains "
                                  "stops splitting, so noisy planes stay large, well-averaged patches")
+    thing_detail: bool = _f(True, "model things finer than stuff when the frames carry masks: the "
+                                  "prior splits thing points into patches a few thing spacings wide, "
+                                  "things get surfels at thing_spacing_pixels (the rest of the scene "
+                                  "shares what is left of the same count) and density control serves "
+                                  "surfels on things first; without masks nothing changes")
+    thing_spacing_pixels: float = _f(2.5, "target surfel spacing on things, in pixels at the median "
+                                          "viewing distance (spacing_pixels elsewhere). Finer measured "
+                                          "better (benchmarks/RESULTS.md, surfels: 2 px doubles the "
+                                          "surfels on things), but below 2.5 px the test demo's scene "
+                                          "(64x48) finds a box that export pins as unstable (its table "
+                                          "top is fused short) and 1.5 px drops its PQ to 0.336")
     lambda_geo: float = _f(0.3, "lambda_2: L_geo, SOGMM point-to-plane distance (per metre) + "
                                 "lambda_n normal alignment (the prior's patches fit the noisy points to "
                                 "~1 cm; 1.0 held surfels on them and cost accuracy)")

@@ -69,13 +69,14 @@ def _rebuild(params: dict, optimizer, keep, extra: dict) -> None:
 
 def densify_and_prune(params: dict, optimizer, stats: GradStats, *, grad_threshold: float,
                       large_scale: float, prune_opacity: float, max_scale: float, budget: int,
-                      generator: torch.Generator) -> dict:
+                      generator: torch.Generator, first: torch.Tensor | None = None) -> dict:
     """One round of density control; returns counts {"cloned", "split", "pruned", "surfels"}.
 
     Clone surfels with mean view-space gradient > grad_threshold and max scale <= large_scale;
     split (2 children sampled on the surfel, scales / 1.6) those larger. Prune opacity <
     prune_opacity or max scale > max_scale. Growth stops at `budget` surfels (highest-gradient
-    candidates first); above budget the least opaque surfels go.
+    candidates first; with `first` [N] bool, those surfels' candidates before all others, so a
+    budget that binds goes to them); above budget the least opaque surfels go.
     """
     with torch.no_grad():
         n = params["means"].shape[0]
@@ -86,6 +87,8 @@ def densify_and_prune(params: dict, optimizer, stats: GradStats, *, grad_thresho
         g = stats.mean()
         cand = (g > grad_threshold) & ~prune
         order = torch.argsort(-g[cand], stable=True)
+        if first is not None:
+            order = order[torch.argsort((~first[cand][order]).to(torch.int8), stable=True)]
         cand_idx = torch.nonzero(cand).squeeze(1)[order]
         room = max(0, budget - (n - int(prune.sum())))
         cand_idx = cand_idx[:room]

@@ -41,6 +41,12 @@ PRIOR_POINTS = 400_000
 EXTENT_FRAMES = 20
 EXTENT_PIXEL_STEP = 4
 EXTENT_PERCENTILE = 1
+# A thing's SOGMM patches are at most this many thing spacings wide (so each holds ~this^2 surfels
+# and the patch planes follow the object's curvature at the scale its surfels resolve).
+THING_PATCH_SPACINGS = 4
+# Things take at most this share of the initial surfels, however much of the view they fill: the
+# rest of the scene keeps enough to be covered.
+THING_SHARE_MAX = 0.5
 # Depth error before / after training is measured on this many frames spread over the sequence.
 EVAL_FRAMES = 6
 # The position step decays exponentially to this fraction of lr_means (coarse moves first).
@@ -199,6 +205,66 @@ def prior_points(frames, cfg: TrainConfig, log=print):
     return pts4, noise_at(z, model), stride
 
 
+def thing_points(frames, classes, stride: int) -> np.ndarray | None:
+    """Which back-projected points (prior_points' order) lie in a thing mask: [P] bool, or None when
+    no frame carries masks. A pixel is on a thing when its semantic class is a thing class, or,
+    without semantic maps or a class table, when it has an instance id. Frames without masks give
+    False (the coarse rule)."""
+    thing_ids = [int(c["id"] if isinstance(c, dict) else c.id) for c in classes or []
+                 if (c["isthing"] if isinstance(c, dict) else c.isthing)]
+    if not any(fr.semantic is not None or fr.instance is not None for fr in frames):
+        return None
+    out = []
+    for fr in frames:
+        d = fr.depth.numpy()[::stride, ::stride]
+        valid = np.isfinite(d) & (d > 0)            # backproject_frame's pixels, in its order
+        if fr.semantic is not None and thing_ids:
+            on = np.isin(fr.semantic.numpy()[::stride, ::stride], thing_ids)
+        elif fr.instance is not None:
+            on = fr.instance.numpy()[::stride, ::stride] > 0
+        else:
+            on = np.zeros(d.shape, bool)
+        out.append(on[valid])
+    return np.concatenate(out)
+
+
+def fit_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=print):
+    """The SOGMM prior of the frames' back-projected points (prior_points). With cfg.thing_detail and
+    masked frames, points in thing masks are fitted finer (patches at most THING_PATCH_SPACINGS thing
+    spacings wide; sogmm.detail says which components are on things). Returns (sogmm, pts4, stride)."""
+    from psimap.geometry.sogmm import fit_sogmm
+
+    pts4, noise, stride = prior_points(frames, cfg, log)
+    thing = thing_points(frames, classes, stride) if cfg.thing_detail else None
+    if thing is None or not thing.any():
+        return fit_sogmm(pts4, noise=noise), pts4, stride
+    return (fit_sogmm(pts4, noise=noise, detail=thing, detail_extent=THING_PATCH_SPACINGS * thing_spacing(spacing, cfg)),
+            pts4, stride)
+
+
+def thing_spacing(spacing: float, cfg: TrainConfig) -> float:
+    """Target surfel spacing on things (m): the scene's spacing scaled by thing / scene pixels."""
+    return spacing * cfg.thing_spacing_pixels / cfg.spacing_pixels
+
+
+def relative_density(sogmm, spacing: float, cfg: TrainConfig, n_total: int) -> np.ndarray | None:
+    """Surfels per m^2 of each component relative to the others [K], or None (uniform) when the
+    prior knows no things. Thing components get the thing spacing; the rest of the scene shares
+    what is left of the same n_total (so it gets coarser), and things never take more than
+    THING_SHARE_MAX of it."""
+    if sogmm.detail is None:
+        return None
+    side = sogmm.extents()
+    areas = side[:, 0] * side[:, 1]
+    on = sogmm.detail > 0.5
+    a_thing, a_stuff = float(areas[on].sum()), float(areas[~on].sum())
+    if a_thing <= 0 or a_stuff <= 0:
+        return None
+    n_thing = min(a_thing / thing_spacing(spacing, cfg) ** 2, THING_SHARE_MAX * n_total)
+    ratio = (n_thing / a_thing) / ((n_total - n_thing) / a_stuff)
+    return np.where(on, max(ratio, 1.0), 1.0)
+
+
 # ------------------------------------------------------------------------------------------------
 # initialisation
 
@@ -236,22 +302,27 @@ def surfel_values(params: dict) -> dict:
                 "semantic": torch.zeros(n, 0), "instance": torch.zeros(n, 0)}
 
 
-def init_from_prior(frames, cfg: TrainConfig, spacing: float, log=print):
-    """SOGMM prior of the back-projected frames -> surfels on its patches at `spacing`.
+def init_from_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=print):
+    """SOGMM prior of the back-projected frames -> surfels on its patches at `spacing` (on average:
+    finer on things, coarser elsewhere, when the frames carry masks; see relative_density).
 
     Returns (params, index (SOGMMIndex), info dict with K, area, n_init).
     """
     from scipy.spatial import cKDTree
 
-    from psimap.geometry.sogmm import SOGMMIndex, fit_sogmm, sample_surfels
+    from psimap.geometry.sogmm import SOGMMIndex, sample_surfels
 
-    pts4, noise, stride = prior_points(frames, cfg, log)
     t0 = time.perf_counter()
-    sogmm = fit_sogmm(pts4, noise=noise)
+    sogmm, pts4, stride = fit_prior(frames, cfg, spacing, classes, log)
     side = sogmm.extents()
     area = float((side[:, 0] * side[:, 1]).sum())
     n_init = max(MIN_SURFELS, int(round(area / spacing**2)))
-    means, quats, scales, _ = sample_surfels(sogmm, n_init, seed=cfg.seed)
+    rel = relative_density(sogmm, spacing, cfg, n_init)
+    means, quats, scales, _ = sample_surfels(sogmm, n_init, relative_density=rel, seed=cfg.seed)
+    if rel is not None:
+        on = sogmm.detail > 0.5
+        log(f"things: {int(on.sum())} of {sogmm.K} components, {float((side[on, 0] * side[on, 1]).sum()):.1f} m^2, "
+            f"{rel.max():.1f}x the surfels per m^2 of the rest")
     log(f"SOGMM prior: K = {sogmm.K} components from {len(pts4)} points, residual "
         f"{sogmm.fit_stats.get('residual_mean', float('nan')) * 1000:.1f} mm (budget "
         f"{sogmm.fit_stats.get('residual_budget', float('nan')) * 1000:.1f} mm), {time.perf_counter() - t0:.1f} s; "
@@ -287,6 +358,14 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
 
 # ------------------------------------------------------------------------------------------------
 # training
+
+
+def on_things(means, index) -> torch.Tensor | None:
+    """[N] bool: surfels whose nearest prior component is on a thing (density control serves them
+    first), or None when the prior knows no things."""
+    if index is None or index.sogmm.detail is None:
+        return None
+    return torch.as_tensor(index.sogmm.detail > 0.5)[index.nearest(means.detach()).cpu()]
 
 
 def make_optimizer(params: dict, cfg: TrainConfig, extent: float):
@@ -429,6 +508,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
     extent = float(np.linalg.norm(np.percentile(p_all, 100 - EXTENT_PERCENTILE, 0)
                                   - np.percentile(p_all, EXTENT_PERCENTILE, 0)))
 
+    classes = list(getattr(seq, "classes", []) or [])
     index = None
     steps_before = 0
     if resume is not None:
@@ -440,14 +520,13 @@ def _train(data, cfg, *, resume, progress, log, callback):
                 "n_init": int(prev.metrics.get("n_init", len(prev))),
                 "area": float(prev.metrics.get("prior_area", len(prev) * spacing**2))}
         if cfg.use_prior and cfg.lambda_geo > 0:
-            from psimap.geometry.sogmm import SOGMMIndex, fit_sogmm
+            from psimap.geometry.sogmm import SOGMMIndex
 
-            pts4, noise, _ = prior_points(frames, cfg, log)
-            index = SOGMMIndex(fit_sogmm(pts4, noise=noise))
+            index = SOGMMIndex(fit_prior(frames, cfg, spacing, classes, log)[0])
         log(f"resuming from {getattr(prev, 'path', None) or 'scene'}: {len(prev)} surfels, "
             f"{steps_before} steps done")
     elif cfg.use_prior:
-        params, index, info = init_from_prior(frames, cfg, spacing, log)
+        params, index, info = init_from_prior(frames, cfg, spacing, classes, log)
     else:
         params, index, info = init_from_points(frames, cfg, spacing, log)
     budget = max(int(cfg.budget_factor * info["n_init"]), MIN_SURFELS)
@@ -504,7 +583,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if dens_from <= step < dens_until and (step + 1) % cfg.densify_every == 0:
             r = densify_and_prune(params, optimizer, grad_stats, grad_threshold=cfg.grad_threshold,
                                   large_scale=cfg.split_scale * spacing, prune_opacity=cfg.prune_opacity,
-                                  max_scale=cfg.prune_scale * extent, budget=budget, generator=gen)
+                                  max_scale=cfg.prune_scale * extent, budget=budget, generator=gen,
+                                  first=on_things(params["means"], index))
             dens_log.append({"step": steps_before + step + 1, **r})
             log(f"density control at step {steps_before + step + 1}: {r['cloned']} cloned, {r['split']} split, "
                 f"{r['pruned']} pruned -> {r['surfels']} surfels (budget {budget})")
@@ -524,7 +604,6 @@ def _train(data, cfg, *, resume, progress, log, callback):
         for k in PARAM_NAMES:
             params[k] = params[k].detach()[keep]
     panoptic_state, panoptic_metrics = None, {}
-    classes = list(getattr(seq, "classes", []) or [])
     if cfg.panoptic and cfg.panoptic_iters > 0:
         from psimap.panoptic.fit import labelled
 
