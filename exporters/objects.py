@@ -243,7 +243,7 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
         return obj
     t0 = time.perf_counter()
     obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed,
-                                       obstacles=obstacles)
+                                       obstacles=obstacles, resting=obj.support_z is not None)
     if obj.support_z is not None and not obj.collision.is_primitive:
         obj.collision.parts = with_flat_base(obj.collision.parts, obj.support_z)
     obj.measured.timings["collision_s"] = time.perf_counter() - t0

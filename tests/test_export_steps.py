@@ -437,3 +437,24 @@ def test_an_instance_with_no_surface_says_why():
 
     m = re.match(r"its (\d+) surfels win at most (\d+) pixels", by_id[6].why_empty)
     assert m and int(m.group(1)) > 0 and int(m.group(2)) < 16
+
+
+def test_a_resting_object_gets_no_cylinder_lying_on_its_side():
+    """Issue #17: a reconstructed apple (a 3.5 cm ball cut flat where it rests, 6.4 cm tall)
+    fits a lying cylinder within tolerance; its centre of mass off the axis, it rolled 10 cm in the
+    settle check and was pinned. Resting, a lying cylinder is no candidate; upright ones still are."""
+    ball = trimesh.creation.icosphere(4, radius=0.035).apply_translation([0, 0, 0.029])
+    apple = trimesh.boolean.intersection([ball, trimesh.creation.box(extents=[0.2, 0.2, 0.2]).apply_translation(
+        [0, 0, 0.1])], engine="manifold")
+    lying = trimesh.creation.cylinder(radius=0.03, height=0.07, sections=48)
+    lying.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    lying.apply_translation([0, 0, 0.03])
+    standing = trimesh.creation.cylinder(radius=0.03, height=0.12, sections=48).apply_translation([0, 0, 0.06])
+    tol = 0.012
+    free = C.collision_geometry(lying, tol)
+    assert free.kind == "cylinder" and abs(free.transform[2, 2]) < 0.2        # not resting: it is a cylinder
+    for mesh in (apple, lying):
+        c = C.collision_geometry(mesh, tol, resting=True)
+        assert not (c.kind == "cylinder" and abs(c.transform[2, 2]) < C.UPRIGHT_COS), (c.kind, c.transform)
+        assert c.error <= tol
+    assert C.collision_geometry(standing, tol, resting=True).kind == "cylinder"
