@@ -42,7 +42,7 @@ PSIMAP = str(Path(sys.executable).with_name("psimap"))
 # frames per capture by image size: a phone capture of a tabletop is a few dozen frames; the big
 # images get fewer (the issue's real captures: 10-21 frames at 640x480)
 FRAMES = {(160, 120): 48, (320, 240): 48, (640, 480): 24}
-DEFAULT_RUNS = [((160, 120), (0, 1, 2)), ((320, 240), (0, 1, 2)), ((640, 480), (0,))]
+DEFAULT_RUNS = [((320, 240), (0, 1, 2)), ((160, 120), (0, 1, 2)), ((640, 480), (0,))]   # the targets' size first
 
 
 def ycb_objects(seed: int, count: int = 2) -> list:
@@ -240,12 +240,18 @@ def main(argv=None) -> int:
                   flush=True)
             rows.append(r)
             (base / "rows.json").write_text(json.dumps(rows, indent=1, default=float))
+        # each finished size is written at once: a long run stopped later keeps what it measured
+        report(rows, write=not a.no_write)
+    return 0
+
+
+def report(rows: list[dict], write: bool) -> None:
     text, headlines = tables(rows)
-    print(text)
-    if not a.no_write:
+    if write:
         write_section(KEY, "Objects: found, detailed, dynamic (generated tabletops, 15 % label noise)",
                       text, headlines=headlines, plot=plot(rows))
-    return 0
+    else:
+        print(text)
 
 
 if __name__ == "__main__":
