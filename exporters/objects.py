@@ -153,7 +153,9 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         obj.skip(Reason.REPAIR, f"repair: {pre.reason}")
         return obj
     m = pre.mesh
-    if completion != "none":
+    # furniture with a top is carved and opened under it (exporters.solidify): completion tiers are
+    # for what a movable thing hides, and extruding a table's top down to the floor made a block
+    if completion != "none" and open_under is None:
         from psimap.completion import CompletionContext, complete
 
         t1 = time.perf_counter()

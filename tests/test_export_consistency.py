@@ -392,3 +392,24 @@ def test_furniture_is_open_under_its_top_only_where_no_side_encloses_it(furnitur
     else:
         assert abs(opened.volume - carved.volume) < 0.05 * carved.volume
         assert opened.volume > 0.85 * obj.volume
+
+
+def test_a_table_is_not_completed_down_to_the_floor():
+    """Issue #17: the `support` completion extruded a table's top to the floor (a 88 kg block, F@2.5cm
+    0.46); furniture with a top skips completion and is carved and opened under its top instead."""
+    from psimap.completion import CompletionContext
+    from psimap.exporters.objects import prepare_solid
+
+    floor = _box([4, 4, 0.01], [0, 0, -0.005])
+    K = np.array([[120.0, 0, 80], [0, 120.0, 60], [0, 0, 1]])
+    obj = _table()
+    eyes = [np.array([1.3 * np.cos(a), 1.3 * np.sin(a), 1.4]) for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+    views = _depth_views([obj, floor], eyes, [0, 0, 0.5], K, 160, 120)
+    shell = _seen_surface(obj, views)
+    ctx = CompletionContext(support_planes=[((0.0, 0.0, 1.0), 0.0)])
+    kw = dict(completion="support", context=ctx, support_z=0.0, carve_views=views, resolution=0.01)
+    block = prepare_solid(shell, "table", 1, **kw)
+    table = prepare_solid(shell, "table", 1, open_under=float(obj.bounds[1, 2]), **kw)
+    assert block.measured.completed and block.mesh.volume > 3 * obj.volume
+    assert not table.measured.completed and table.mesh.is_watertight
+    assert table.mesh.volume < 1.6 * obj.volume, (table.mesh.volume, obj.volume)
