@@ -16,6 +16,7 @@ train / export seconds. A plot of F-score against object size.
 
     python benchmarks/objects.py                                 # 160x120, 320x240 (3 seeds), 640x480 (1 seed)
     python benchmarks/objects.py --sizes 320x240 --seeds 0 --no-write    # one run, print only
+    python benchmarks/objects.py --keep DIR --no-write; ... --from-rows DIR/rows.json   # run elsewhere, write later
 """
 from __future__ import annotations
 
@@ -220,7 +221,12 @@ def main(argv=None) -> int:
     ap.add_argument("--iters", type=int, default=0, help="training iterations (0 = psimap's default)")
     ap.add_argument("--keep", default="", help="keep the work folders under this folder")
     ap.add_argument("--no-write", action="store_true", help="print only; leave RESULTS.md alone")
+    ap.add_argument("--from-rows", default="", help="write the section from a rows.json an earlier run kept "
+                                                     "(--keep DIR: DIR/rows.json) instead of running")
     a = ap.parse_args(argv)
+    if a.from_rows:
+        report(json.loads(Path(a.from_rows).read_text()), write=not a.no_write)
+        return 0
     runs = DEFAULT_RUNS
     if a.sizes or a.seeds:
         sizes = [tuple(int(v) for v in s.split("x")) for s in (a.sizes or ["320x240"])]
