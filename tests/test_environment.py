@@ -172,3 +172,21 @@ def test_boxes_rest_on_the_stuff_desk_and_stop_at_the_wall(env):
         assert moved < 0.01, (n, moved)
     x = data.xpos[wall_box][0]
     assert 1.8 < x < W / 2 - 0.05 + 0.005, x                    # reached the wall, did not pass it
+
+
+def test_a_wavy_furniture_top_is_one_level_and_shelf_boards_stay_apart():
+    """Issue #17: a table top fused 1.3 cm higher over one patch got a second slab there; the ball
+    on the patch was pushed out of it and pinned. Levels within 3 cm on one footprint are one top;
+    a shelf's boards 30 cm apart stay two."""
+    import trimesh
+
+    from psimap.exporters.environment import furniture_tops
+
+    top = trimesh.creation.box(extents=[1.2, 0.8, 0.04]).apply_translation([0, 0, 0.70])
+    bump = trimesh.creation.box(extents=[0.35, 0.3, 0.013]).apply_translation([0.2, 0.1, 0.7265])
+    table = trimesh.util.concatenate([top, bump]).subdivide_to_size(0.02)      # fused meshes: small faces
+    tops = furniture_tops(table, voxel=0.005)
+    assert len(tops) == 1 and tops[0].height == pytest.approx(0.72, abs=2e-3)
+    boards = trimesh.util.concatenate([trimesh.creation.box(extents=[0.8, 0.3, 0.02]).apply_translation([0, 0, z])
+                                       for z in (0.4, 0.7)]).subdivide_to_size(0.02)
+    assert sorted(round(s.height, 2) for s in furniture_tops(boards, voxel=0.005)) == [0.41, 0.71]
