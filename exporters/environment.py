@@ -574,11 +574,20 @@ def one_level_per_top(supports, *, merge: float = 0.03) -> list:
     moved 1.6 cm and was pinned.)"""
     kept = []
     for s in sorted(supports, key=lambda s: -s.area):
-        centre = np.asarray(s.polygon, np.float64).mean(axis=0) if len(s.polygon) else None
-        if centre is not None and any(abs(s.height - k.height) <= merge and k.contains(centre) for k in kept):
+        if len(s.polygon) and any(abs(s.height - k.height) <= merge and _within_box(s.polygon, k.polygon, merge)
+                                  for k in kept):
             continue
         kept.append(s)
     return kept
+
+
+def _within_box(inner, outer, margin: float) -> bool:
+    """Whether the centre of plan-view polygon `inner` [k, 2] lies in the bounding box of `outer`
+    grown by `margin` (the larger level's outline excludes the patch that rose above it: its
+    notch, not a test of containment, is where the patch lies)."""
+    c = np.asarray(inner, np.float64).mean(axis=0)
+    o = np.asarray(outer, np.float64)
+    return bool(np.all(c >= o.min(axis=0) - margin) and np.all(c <= o.max(axis=0) + margin))
 
 
 def add_support_slabs(env: StaticEnvironment, supports, owner: str, thickness: float = THICKNESS) -> None:
