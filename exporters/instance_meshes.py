@@ -238,8 +238,11 @@ def fuse_instance(surfels: dict, views, *, depth_max: float, px_per_voxel: float
         cols.append(np.clip(out.rgb.numpy() / np.maximum(alpha, 1e-6)[..., None], 0, 1).astype(np.float32))
     if not depths:
         return None
+    # the renders are clean (no sensor noise at range): the scene's depth cap must not cut a far
+    # instance away (a box 5 m off was lost whole: "no block touched")
+    far = max(float(d[d > 0].max()) for d in depths)
     mesh = fuse_tsdf(depths, Ks, c2ws, colors=cols, voxel_size=voxel, trunc=4 * voxel,
-                     depth_max=depth_max, keep_fraction=0.2)
+                     depth_max=max(float(depth_max), far + 4 * voxel), keep_fraction=0.2)
     mesh.voxel_size = voxel
     return mesh
 

@@ -185,13 +185,25 @@ def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequ
     mult = params.trunc / params.voxel_size
     for i in tqdm(range(n), desc="tsdf", disable=not progress, leave=False):
         d = clean[i]
-        if not np.any(d > 0):
+        # Open3D aborts the whole integration ("No block is touched") on a frame whose depth lies
+        # wholly beyond depth_max: such a frame adds nothing, and must not lose the others
+        if not np.any((d > 0) & (d <= params.depth_max)):
             continue
         depth_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(d)[..., None]))
         intr = o3c.Tensor(Ks[i])
         extr = o3c.Tensor(np.ascontiguousarray(np.linalg.inv(c2ws[i])))
-        coords = vbg.compute_unique_block_coordinates(depth_img, intr, extr, 1.0, params.depth_max,
-                                                      mult)
+        try:
+            coords = vbg.compute_unique_block_coordinates(depth_img, intr, extr, 1.0, params.depth_max, mult)
+        except RuntimeError:
+            # Open3D touches blocks from every 4th pixel only, and aborts when none of those holds
+            # depth: a sparse render (a far box: 174 pixels) lost its whole instance that way
+            from psimap.transforms import depth_to_world
+
+            pts = depth_to_world(d, Ks[i], c2ws[i], max_depth=params.depth_max)[0]
+            if len(pts) == 0:
+                continue
+            coords = vbg.compute_unique_block_coordinates(
+                o3d.t.geometry.PointCloud(o3c.Tensor(np.ascontiguousarray(pts, dtype=np.float32))), mult)
         if use_color:
             c = np.asarray(colors[i])
             c = (c.astype(np.float32) / 255.0) if c.dtype == np.uint8 else c.astype(np.float32)
