@@ -42,6 +42,8 @@ class Collision:
 PRIMITIVE_ERROR_STEP = 1e-3
 
 
+# a convex collider part thinner than this (m) is a sliver MuJoCo cannot take (`is_solid_part`)
+MIN_PART_THICKNESS = 5e-4
 # a resting cylinder collider must stand within 10 degrees of upright (collision_geometry)
 UPRIGHT_COS = float(np.cos(np.radians(10.0)))
 
@@ -211,12 +213,29 @@ def clip_halfspace(part, normal: np.ndarray, level: float):
     t = (ha[cross] / (ha[cross] - hb[cross]))[:, None]
     ring = v[e[cross, 0]] + t * (v[e[cross, 1]] - v[e[cross, 0]])
     pts = np.concatenate([v[h >= 0], ring])
-    if len(pts) < 4:
+    if len(pts) < 4 or not is_solid_part(pts):
         return None
     try:
         return trimesh.convex.convex_hull(pts)
     except Exception:        # a sliver: qhull finds no volume
         return None
+
+
+def is_solid_part(points, min_thickness: float = MIN_PART_THICKNESS) -> bool:
+    """Whether convex points [n, 3] span at least `min_thickness` (m) along their thinnest principal
+    axis: MuJoCo refuses a mesh of coplanar vertices ("cannot compute convex hull") and the whole
+    scene with it (a shelf part clipped flat at a board stopped `psimap demo`)."""
+    p = np.asarray(points, np.float64)
+    if len(p) < 4 or not np.isfinite(p).all():
+        return False
+    c = p - p.mean(axis=0)
+    axis = np.linalg.svd(c, full_matrices=False)[2][-1]
+    return float(np.ptp(c @ axis)) >= min_thickness
+
+
+def solid_parts(parts, min_thickness: float = MIN_PART_THICKNESS) -> list:
+    """The convex parts [trimesh] that are solid (`is_solid_part`); flat ones are dropped."""
+    return [q for q in parts if q is not None and is_solid_part(q.vertices, min_thickness)]
 
 
 def penetrates(parts, obstacles, max_penetration: float = 1e-3) -> bool:

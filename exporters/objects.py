@@ -208,7 +208,7 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     """Steps 4-7 on a prepared solid: decimation to an error budget, mass properties, collider,
     UV + texture. Skipped objects come back unchanged. obstacles: convex collider parts of
     neighbours that the collider must not enter."""
-    from psimap.exporters.collision import collision_geometry, default_tolerance
+    from psimap.exporters.collision import collision_geometry, default_tolerance, solid_parts
     from psimap.exporters.decimate import decimate_to_budget, decimate_to_count, default_budget, visual_face_budget
     from psimap.exporters.physics import mass_properties
 
@@ -247,7 +247,7 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed,
                                        obstacles=obstacles, resting=obj.support_z is not None)
     if obj.support_z is not None and not obj.collision.is_primitive:
-        obj.collision.parts = with_flat_base(obj.collision.parts, obj.support_z)
+        obj.collision.parts = solid_parts(with_flat_base(obj.collision.parts, obj.support_z)) or obj.collision.parts
     obj.measured.timings["collision_s"] = time.perf_counter() - t0
     if obj.collision.kind == "sphere":
         # a sphere collider means the object is a ball: its COM is the centre (a reconstruction's
@@ -520,6 +520,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                                               neighbour_collider_parts)
     from psimap.exporters.environment import (add_support_slabs, flatten_solid, flatten_under, furniture_tops,
                                               static_environment)
+    from psimap.exporters.collision import solid_parts
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.physics import is_static_class
     from psimap.exporters.solidify import disc_points
@@ -590,7 +591,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                       obstacles=neighbour_collider_parts(o, finished) + world, **{**kw, **hulls})
         if tops.get(o.instance_id) and o.collision is not None and not o.collision.is_primitive:
             # static furniture: a flat slab is its top, its fused hulls are cut flat under it
-            o.collision.parts = flatten_under(o.collision.parts, tops[o.instance_id])
+            o.collision.parts = solid_parts(flatten_under(o.collision.parts, tops[o.instance_id])) or o.collision.parts
         finished.append(o)
     background = inst.background
     # labels too big to be objects stay in the scene as static background (what they covered is

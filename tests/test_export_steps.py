@@ -458,3 +458,14 @@ def test_a_resting_object_gets_no_cylinder_lying_on_its_side():
         assert not (c.kind == "cylinder" and abs(c.transform[2, 2]) < C.UPRIGHT_COS), (c.kind, c.transform)
         assert c.error <= tol
     assert C.collision_geometry(standing, tol, resting=True).kind == "cylinder"
+
+
+def test_flat_collider_parts_are_dropped():
+    """A shelf part clipped flat at a board (coplanar vertices) made MuJoCo refuse the whole scene
+    ("cannot compute convex hull") and `psimap demo` stop; slivers are no collider parts."""
+    box = trimesh.creation.box(extents=[0.2, 0.1, 0.05]).apply_translation([0, 0, 0.025])
+    assert C.clip_halfspace(box, np.array([0.0, 0.0, 1.0]), 0.05 - 2e-4) is None        # 0.2 mm left
+    kept = C.clip_halfspace(box, np.array([0.0, 0.0, 1.0]), 0.04)
+    assert kept is not None and kept.extents[2] == pytest.approx(0.01)
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1e-5]], [[0, 1, 2], [1, 3, 2], [0, 2, 3], [0, 3, 1]])
+    assert C.solid_parts([box, flat, None]) == [box]
