@@ -150,6 +150,7 @@ def plot(rows: list[dict]):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     sizes = sorted({r["size"] for r in rows}, key=lambda s: int(s.split("x")[0]))
@@ -163,6 +164,9 @@ def plot(rows: list[dict]):
             ax.scatter(x[found], y[found], s=18, color=c, label=size)
             ax.scatter(x[~found], y[~found], s=30, color=c, marker="x")
         ax.set_xscale("log")
+        ticks = [0.1, 0.2, 0.5, 1.0, 2.0]
+        ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("GT object size (bounding-box diagonal, m)")
         ax.set_title(label)
         ax.set_ylim(-0.03, 1.03)
