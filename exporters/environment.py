@@ -628,6 +628,46 @@ def flatten_solid(mesh, supports, *, bump: float = 0.05):
     return mesh, steps
 
 
+def clear_above_top(mesh, top, things, *, margin: float = 0.01, tol: float = 0.01):
+    """(mesh, steps): a static furniture solid with the space over its `top` (Support) where each
+    of `things` (watertight trimeshes resting on that top) stands cut away, up to the thing's
+    height: that space is the thing's. Carving keeps what the things on a table hide from every
+    view, and the table's label bleeds onto their bottoms; the table then rose 6 cm above its top
+    under them and every thing was cut by its collider. A cut that leaves the solid unsound, or
+    takes more than half of it, is not made."""
+    import manifold3d  # noqa: F401  (to_manifold's engine)
+    import trimesh
+    from scipy.spatial import ConvexHull, QhullError
+
+    from psimap.completion.meshops import to_manifold
+
+    steps = []
+    for t in things:
+        v = np.asarray(t.vertices, np.float64)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        if lo[2] > top.height + 0.05 or not top.contains(0.5 * (lo[:2] + hi[:2]), margin):
+            continue
+        xy = v[:, :2]
+        try:
+            ring = xy[ConvexHull(xy).vertices]
+        except QhullError:
+            continue
+        c = ring.mean(axis=0)
+        d = ring - c
+        ring = ring + margin * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+        a = to_manifold(mesh)
+        cut = a - to_manifold(_prism(ring, top.height + tol, hi[2] + margin))
+        removed = float(a.volume() - cut.volume())
+        if removed <= 1e-9 or removed > 0.5 * float(a.volume()):
+            continue
+        m = cut.to_mesh()
+        out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts), process=False)
+        if out.is_watertight and out.volume > 0:
+            mesh = out
+            steps.append(f"cleared over its top under a thing ({removed * 1e6:.0f} cm3)")
+    return mesh, steps
+
+
 def flatten_under(parts, supports, *, bump: float = 0.05, margin: float = 0.02) -> list:
     """Convex collider parts [trimesh] of a static furniture object with every part that bulges
     less than `bump` above one of its supports (inside the footprint grown by `margin`) cut flat at

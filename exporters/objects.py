@@ -518,8 +518,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from psimap.completion import CompletionContext
     from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
-    from psimap.exporters.environment import (add_support_slabs, flatten_solid, flatten_under, furniture_tops,
-                                              static_environment)
+    from psimap.exporters.environment import (add_support_slabs, clear_above_top, flatten_solid, flatten_under,
+                                              furniture_tops, static_environment)
     from psimap.exporters.collision import solid_parts
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.physics import is_static_class
@@ -570,6 +570,11 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         if o.role is not Role.SKIPPED and tops.get(o.instance_id):
             o.mesh, steps = flatten_solid(o.mesh, tops[o.instance_id])
             o.measured.repair_steps += steps
+            standing = [t.mesh for t in objs if t is not o and t.role is not Role.SKIPPED and t.mesh is not None
+                        and not tops.get(t.instance_id)]
+            for top in tops[o.instance_id]:
+                o.mesh, steps = clear_above_top(o.mesh, top, standing)
+                o.measured.repair_steps += steps
     make_consistent(objs, floor_z)
     timings["consistency_s"] = time.perf_counter() - t0
     for o in objs:

@@ -190,3 +190,24 @@ def test_a_wavy_furniture_top_is_one_level_and_shelf_boards_stay_apart():
     boards = trimesh.util.concatenate([trimesh.creation.box(extents=[0.8, 0.3, 0.02]).apply_translation([0, 0, z])
                                        for z in (0.4, 0.7)]).subdivide_to_size(0.02)
     assert sorted(round(s.height, 2) for s in furniture_tops(boards, voxel=0.005)) == [0.41, 0.71]
+
+
+def test_the_space_over_a_top_under_a_thing_is_the_things():
+    """Issue #17: carving kept what the things on a table hide (and the table's label bled onto
+    their bottoms): the table rose 6 cm above its top under them and cut every thing. Over its top,
+    under each thing standing there, the table's solid is cleared up to the thing's height."""
+    import trimesh
+
+    from psimap.exporters.environment import clear_above_top, furniture_tops
+
+    slab = trimesh.creation.box(extents=[1.2, 0.8, 0.04]).apply_translation([0, 0, 0.70])
+    bleed = trimesh.creation.box(extents=[0.16, 0.16, 0.06]).apply_translation([0.2, 0.1, 0.75])   # hidden space
+    table = trimesh.boolean.union([slab, bleed], engine="manifold")
+    top = [s for s in furniture_tops(slab.subdivide_to_size(0.02), voxel=0.005)][0]
+    ball = trimesh.creation.icosphere(3, radius=0.12).apply_translation([0.2, 0.1, 0.72 + 0.12])
+    far = trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([3.0, 0.0, 0.77])     # not on this top
+    out, steps = clear_above_top(table, top, [ball, far])
+    assert out.is_watertight and len(steps) == 1
+    assert out.bounds[1, 2] == pytest.approx(0.72 + 0.01, abs=2e-3)          # the top stays, the rise goes
+    assert out.volume == pytest.approx(slab.volume + 0.16 * 0.16 * 0.01, rel=0.02)
+    assert clear_above_top(slab, top, [far])[1] == []
