@@ -604,26 +604,12 @@ def flatten_solid(mesh, supports, *, bump: float = 0.05):
     above each of its supports, inside the support's footprint, cut away: a fused table top is
     wavy by a centimetre, and a bottle cut free of the table's bumps would stand on them and tip.
     Steps name each cut; a cut that would take more than a tenth of the solid is not made."""
-    import manifold3d
-
-    from psimap.completion.meshops import to_manifold
-
     steps = []
     for s in supports:
         if len(s.polygon) < 3:
             continue
-        a = to_manifold(mesh)
-        cap = to_manifold(_prism(s.polygon, s.height, s.height + bump))
-        cut = a - cap
-        removed = float(a.volume() - cut.volume())
-        if removed <= 1e-9 or removed > 0.1 * float(a.volume()):
-            continue
-        import trimesh
-
-        m = cut.to_mesh()
-        out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts), process=False)
-        if out.is_watertight and out.volume > 0:
-            mesh = out
+        mesh, removed = _cut_away(mesh, _prism(s.polygon, s.height, s.height + bump), max_share=0.1)
+        if removed:
             steps.append(f"top flattened at {s.height:.3f} m ({removed * 1e6:.0f} cm3)")
     return mesh, steps
 
@@ -635,11 +621,7 @@ def clear_above_top(mesh, top, things, *, margin: float = 0.01, tol: float = 0.0
     view, and the table's label bleeds onto their bottoms; the table then rose 6 cm above its top
     under them and every thing was cut by its collider. A cut that leaves the solid unsound, or
     takes more than half of it, is not made."""
-    import manifold3d  # noqa: F401  (to_manifold's engine)
-    import trimesh
     from scipy.spatial import ConvexHull, QhullError
-
-    from psimap.completion.meshops import to_manifold
 
     steps = []
     for t in things:
@@ -652,20 +634,32 @@ def clear_above_top(mesh, top, things, *, margin: float = 0.01, tol: float = 0.0
             ring = xy[ConvexHull(xy).vertices]
         except QhullError:
             continue
-        c = ring.mean(axis=0)
-        d = ring - c
+        d = ring - ring.mean(axis=0)
         ring = ring + margin * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-        a = to_manifold(mesh)
-        cut = a - to_manifold(_prism(ring, top.height + tol, hi[2] + margin))
-        removed = float(a.volume() - cut.volume())
-        if removed <= 1e-9 or removed > 0.5 * float(a.volume()):
-            continue
-        m = cut.to_mesh()
-        out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts), process=False)
-        if out.is_watertight and out.volume > 0:
-            mesh = out
+        mesh, removed = _cut_away(mesh, _prism(ring, top.height + tol, hi[2] + margin), max_share=0.5)
+        if removed:
             steps.append(f"cleared over its top under a thing ({removed * 1e6:.0f} cm3)")
     return mesh, steps
+
+
+def _cut_away(mesh, tool, *, max_share: float):
+    """(mesh, removed m3): watertight `mesh` minus convex `tool`, or (mesh, 0.0) unchanged when the
+    cut removes nothing, more than `max_share` of the solid, or leaves it unsound."""
+    import manifold3d  # noqa: F401  (to_manifold's engine)
+    import trimesh
+
+    from psimap.completion.meshops import to_manifold
+
+    a = to_manifold(mesh)
+    cut = a - to_manifold(tool)
+    removed = float(a.volume() - cut.volume())
+    if removed <= 1e-9 or removed > max_share * float(a.volume()):
+        return mesh, 0.0
+    m = cut.to_mesh()
+    out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts), process=False)
+    if not (out.is_watertight and out.volume > 0):
+        return mesh, 0.0
+    return out, removed
 
 
 def flatten_under(parts, supports, *, bump: float = 0.05, margin: float = 0.02) -> list:
