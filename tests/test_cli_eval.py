@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from psimap.cli import main
-from psimap.metrics.geometry import camera_rays
+from raycast import labelled_depth
 from psimap.camera import look_at
 
 W, H, F = 32, 24, 22.0
@@ -45,12 +45,7 @@ def data(tmp_path_factory) -> Path:
     frames = []
     for i, ang in enumerate(np.linspace(0, 2 * np.pi, 4, endpoint=False)):
         c2w = look_at(np.array([1.8 * np.cos(ang), 1.8 * np.sin(ang), 1.2]), [0, 0, 0.2])
-        hit = rc.cast_rays(camera_rays(K, c2w, W, H))
-        ids = hit["primitive_ids"].numpy().astype(np.int64).reshape(H, W)
-        ok = ids != 0xFFFFFFFF
-        depth = np.where(ok, hit["t_hit"].numpy().reshape(H, W), 0).astype(np.float32)
-        gsem = np.where(ok, fsem[np.where(ok, ids, 0)], 0).astype(np.uint16)
-        ginst = np.where(ok, finst[np.where(ok, ids, 0)], 0).astype(np.uint16)
+        depth, ginst, gsem = labelled_depth(rc, K, c2w, W, H, finst, fsem)
         frames.append(Frame(rgb=np.full((H, W, 3), 0.5, np.float32), depth=depth, K=K, c2w=c2w,
                             semantic=gsem, instance=ginst, gt_semantic=gsem, gt_instance=ginst,
                             name=f"frame_{i:03d}"))

@@ -173,7 +173,7 @@ def write_data(root, R):
 
     from psimap.data.frames import ClassInfo, Frame
     from psimap.data.scene_format import write_scene
-    from psimap.metrics.geometry import camera_rays
+    from raycast import labelled_depth
 
     meshes, iids, sids = gt_scene()
     meshes = [m.copy().apply_transform(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), 1]])) for m in meshes]
@@ -185,12 +185,7 @@ def write_data(root, R):
     rig, frames = cameras(R), []
     for i, c2w in enumerate(rig["c2w"]):
         K, (w, h) = rig["K"][i], (rig["width"], rig["height"])
-        hit = rc.cast_rays(camera_rays(K, c2w, w, h))
-        ids = hit["primitive_ids"].numpy().astype(np.int64).reshape(h, w)
-        ok = ids != 0xFFFFFFFF
-        depth = np.where(ok, hit["t_hit"].numpy().reshape(h, w), 0).astype(np.float32)
-        inst = np.where(ok, finst[np.where(ok, ids, 0)], 0).astype(np.uint16)
-        sem = np.where(ok, fsem[np.where(ok, ids, 0)], 0).astype(np.uint16)
+        depth, inst, sem = labelled_depth(rc, K, c2w, w, h, finst, fsem)
         frames.append(Frame(rgb=np.full((h, w, 3), 0.5, np.float32), depth=depth, K=K, c2w=c2w, semantic=sem,
                             instance=inst, gt_semantic=sem, gt_instance=inst, name=f"frame_{i:03d}"))
     instances = [{"id": 11, "semantic": 2, "name": "table"}, {"id": 12, "semantic": 3, "name": "box", "mass_kg": 0.2},
