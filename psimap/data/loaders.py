@@ -33,6 +33,7 @@ import numpy as np
 
 from psimap import PsimapError
 from psimap.data.frames import ClassInfo, Frame, FrameSequence
+from psimap.data.label_overlay import apply_label_overlay
 from psimap.data.scene_format import (TRANSFORMS, check_pose, read_depth_png, read_label_png, read_rgb,
                                       read_scene)
 
@@ -65,7 +66,9 @@ def load(path: str | os.PathLike) -> FrameSequence:
     if not p.exists():
         raise PsimapError(f"no such file or folder: {p}")
     layout = detect_layout(p)
-    return next(lay for lay in LAYOUTS if lay.name == layout).read(p)
+    seq = next(lay for lay in LAYOUTS if lay.name == layout).read(p)
+    # labels.json (psimap segment / import-masks) supplies labels for any layout
+    return apply_label_overlay(seq)
 
 
 def detect_layout(p: Path) -> str:
