@@ -37,7 +37,7 @@ CALLS1 = {
 CALLS2 = {
     # resumed from the demo on a copy of its scene without pseudo-labels (no 400-step panoptic phase)
     "train": ["train", "{tmp}/nolabels", "--out", "{tmp}/resumed.ckpt", "--resume", "{tmp}/demo/scene.ckpt",
-              "--iters", "5", "--seed", "3", "--no-prior", "--fast"],
+              "--iters", "5", "--seed", "3", "--no-prior", "--fast", "--no-lidar"],
     "mesh": ["mesh", "{tmp}/demo/scene.ckpt", "--out", "{tmp}/mesh.ply", "--voxel", "0.04"],
     "export_all": ["export", "{tmp}/demo/scene.ckpt", "--format", "all", "--out", "{tmp}/e_all",
                    "--completion", "auto", "--densities", "{tmp}/densities.json", "--static-classes", "none",
@@ -171,6 +171,7 @@ def test_train_resume_no_prior_fast(ran):
     assert f"wrote {tmp / 'resumed.ckpt'}: {len(after)} surfels, {steps} steps" in out
     assert after.metrics["steps"] == steps and len(after) == len(before)
     assert after.config["use_prior"] is False and after.config["deterministic"] is False
+    assert after.config["lidar"] is False
     assert after.config["seed"] == 3 and after.config["iters"] == 5
     assert "resuming from" in res["train"].stderr and "SOGMM" not in res["train"].stderr
 

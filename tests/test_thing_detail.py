@@ -102,7 +102,7 @@ def box_frames():
 def _init(frames, **kw):
     seq = FrameSequence(loader=lambda i: frames[i], count=len(frames), classes=CLASSES)
     cfg = TrainConfig(**kw)
-    fr, _, _ = prepare_frames(seq, cfg, log=lambda m: None)
+    fr, _, _, _ = prepare_frames(seq, cfg, log=lambda m: None)
     spacing = target_spacing(fr, cfg.spacing_pixels)
     params, index, info = init_from_prior(fr, cfg, spacing, CLASSES, log=lambda m: None)
     return params["means"].detach().numpy(), index, info

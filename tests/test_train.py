@@ -221,7 +221,7 @@ def test_geo_weight_schedule(scene_frames):
 
     frames, _ = scene_frames
     c = cfg()
-    tf, _, _ = prepare_frames(sequence(frames), c, log=lambda m: None)
+    tf, _, _, _ = prepare_frames(sequence(frames), c, log=lambda m: None)
     spacing = target_spacing(tf, c.spacing_pixels)
     params, index, _ = init_from_prior(tf, c, spacing, log=lambda m: None)
     with torch.no_grad():                      # move surfels off the prior so L_geo is not ~0

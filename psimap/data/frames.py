@@ -30,7 +30,8 @@ class Frame(DepthSized):
     rgb: [H, W, 3] float32 in [0, 1]; depth: [H, W] float32 metres, 0 = invalid;
     K: [3, 3] float64 intrinsics; c2w: [4, 4] float64 camera-to-world (OpenCV).
     semantic / instance: [H, W] integer label maps (per-frame pseudo-labels) or None.
-    lidar: [N, 4] float32 (x, y, z world, intensity) or None.
+    lidar: [N, 4] float32 (x, y, z world, intensity) or None; lidar_origin: [3] world position of
+    the sensor for that sweep, or None (training then takes the camera centre).
     """
 
     rgb: np.ndarray
@@ -43,6 +44,7 @@ class Frame(DepthSized):
     name: str = ""                      # image file stem, used to name per-frame outputs
     gt_semantic: np.ndarray | None = None   # cross-view-consistent ground truth, when present
     gt_instance: np.ndarray | None = None
+    lidar_origin: np.ndarray | None = None
 
     @property
     def w2c(self) -> np.ndarray:

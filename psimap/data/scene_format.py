@@ -434,6 +434,8 @@ def write_scene(out_dir: str | os.PathLike, frames: list[Frame], classes: list[C
                 (tmp / "lidar").mkdir(exist_ok=True)
                 np.save(tmp / "lidar" / f"{stem}.npy", pts)
                 entry["lidar_file_path"] = f"lidar/{stem}.npy"
+                if f.lidar_origin is not None:
+                    entry["lidar_origin"] = [float(v) for v in np.asarray(f.lidar_origin).reshape(3)]
             meta["frames"].append(entry)
         for job in png_jobs:
             job.result()              # re-raise any write error before the folder is published
@@ -528,18 +530,25 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
             cx, cy = float(fr.get("cx", meta.get("cx"))), float(fr.get("cy", meta.get("cy")))
             w, h = int(fr.get("w", meta.get("w"))), int(fr.get("h", meta.get("h")))
             file_path = fr["file_path"]
-            depth_path = fr["depth_file_path"]
+            # a LiDAR + colour capture may have no depth images (psimap.train uses the sweeps)
+            depth_path = fr["depth_file_path"] if not fr.get("lidar_file_path") else fr.get("depth_file_path")
+            origin = fr.get("lidar_origin")
+            origin = None if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
             c2w_gl = np.asarray(fr["transform_matrix"], dtype=np.float64)
         except (KeyError, TypeError, ValueError):
-            raise PsimapError(f"{src}: needs file_path, depth_file_path, transform_matrix and intrinsics "
-                              f"(fl_x, fl_y, cx, cy, w, h)") from None
+            raise PsimapError(f"{src}: needs file_path, depth_file_path (or lidar_file_path), transform_matrix "
+                              f"and intrinsics (fl_x, fl_y, cx, cy, w, h); lidar_origin, if given, 3 numbers") from None
+        if origin is not None and not np.all(np.isfinite(origin)):
+            raise PsimapError(f"{src}: lidar_origin must be finite")
         if c2w_gl.shape == (3, 4):          # some exporters drop the constant last row
             c2w_gl = np.vstack([c2w_gl, [0.0, 0.0, 0.0, 1.0]])
         K = np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
         if not np.all(np.isfinite(K)) or fl_x <= 0 or fl_y <= 0 or w <= 0 or h <= 0:
             raise PsimapError(f"{src}: invalid intrinsics")
         c2w = check_pose(c2w_gl, f"{src} ({file_path})") @ GL_TO_CV
-        paths = {"rgb": root / file_path, "depth": root / depth_path}
+        paths = {"rgb": root / file_path}
+        if depth_path:
+            paths["depth"] = root / depth_path
         for key, meta_key in (("semantic", "semantic_file_path"), ("instance", "instance_file_path"),
                               ("lidar", "lidar_file_path")):
             if fr.get(meta_key):
@@ -552,12 +561,15 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
         for p in paths.values():
             if not p.is_file():
                 raise PsimapError(f"missing file: {p} (listed in {tf_path})")
-        records.append((paths, K, c2w, (h, w), stem))
+        records.append((paths, K, c2w, (h, w), stem, origin))
 
     def load_frame(i: int) -> Frame:
-        paths, K, c2w, hw, stem = records[i]
-        depth = read_depth_png(paths["depth"], scale)
-        _check_size(paths["depth"], depth, hw, "depth image")
+        paths, K, c2w, hw, stem, origin = records[i]
+        if "depth" in paths:
+            depth = read_depth_png(paths["depth"], scale)
+            _check_size(paths["depth"], depth, hw, "depth image")
+        else:
+            depth = np.zeros(hw, np.float32)
         rgb = read_rgb(paths["rgb"])
         _check_size(paths["rgb"], rgb, hw, "colour image")
         labels = {}
@@ -566,7 +578,8 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
                 labels[key] = read_label_png(paths[key])
                 _check_size(paths[key], labels[key], hw, f"{key} image")
         lidar = read_lidar(paths["lidar"]) if "lidar" in paths else None
-        return Frame(rgb=rgb, depth=depth, K=K.copy(), c2w=c2w.copy(), lidar=lidar, name=stem, **labels)
+        return Frame(rgb=rgb, depth=depth, K=K.copy(), c2w=c2w.copy(), lidar=lidar, name=stem,
+                     lidar_origin=None if origin is None else origin.copy(), **labels)
 
     return FrameSequence(loader=load_frame, count=len(records), classes=classes, root=str(root),
                          layout="psimap", names=[r[4] for r in records])

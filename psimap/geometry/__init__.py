@@ -10,7 +10,7 @@ from __future__ import annotations
 
 _SOGMM = ("SOGMM", "fit_sogmm", "sample_surfels", "SOGMMIndex", "point_to_plane", "normal_alignment",
           "geo_loss")
-_POINTS = ("frames_to_points", "backproject_frame", "lidar_points", "voxel_downsample", "drop_nonfinite")
+_POINTS = ("frames_to_points", "backproject_frame", "lidar_points", "voxel_downsample", "drop_nonfinite", "rgb_to_grey")
 
 _NOISE = ("estimate_depth_noise", "noise_at")
 

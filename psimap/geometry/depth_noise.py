@@ -82,3 +82,44 @@ def noise_at(z: np.ndarray, model: tuple[np.ndarray, np.ndarray], floor: float =
     if len(zc) == 0:
         return np.full(z.shape, floor)
     return np.maximum(np.interp(z, zc, sc), floor)
+
+
+def estimate_lidar_noise(points: np.ndarray, origin: np.ndarray, *, min_samples: int = 200,
+                         max_points: int = 200_000) -> float | None:
+    """Range-noise std (m) of one LiDAR sweep, from the sweep itself (no ground truth), or None when
+    too few samples qualify.
+
+    points: [N, 3] world; origin: [3] sensor position. The depth-image estimator's idea along the
+    scan lines: on a plane, inverse range is a smooth function of the beam direction, so for a
+    point and its two angular neighbours on opposite sides at equal spacing (the previous and next
+    return of its ring: a spinning LiDAR's azimuth step is finer than its ring spacing), the second
+    difference of 1/r is zero up to noise and sigma_r ~= r^2 |e| / sqrt(6). A robust median ignores
+    edges and curved surfaces. The origin need not be exact: a few centimetres off barely changes
+    the directions of returns metres away.
+    """
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64)[:, :3]
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) > max_points:
+        p = p[np.random.default_rng(0).choice(len(p), max_points, replace=False)]
+    rel = p - np.asarray(origin, np.float64)[:3]
+    r = np.linalg.norm(rel, axis=1)
+    keep = r > 1e-3
+    rel, r = rel[keep], r[keep]
+    if len(r) < 3:
+        return None
+    d = rel / r[:, None]
+    dist, nn = cKDTree(d).query(d, k=3)
+    a, b = nn[:, 1], nn[:, 2]
+    da, db = d[a] - d, d[b] - d
+    # opposite sides (the ring's previous and next return) at nearly equal angular steps
+    opposite = np.einsum("ij,ij->i", da, db) < -0.9 * dist[:, 1] * dist[:, 2]
+    even = dist[:, 2] < 1.25 * dist[:, 1]
+    ok = opposite & even & (dist[:, 1] > 0)
+    if ok.sum() < min_samples:
+        return None
+    w = 1.0 / r
+    e = w[a[ok]] - 2.0 * w[ok] + w[b[ok]]
+    s = r[ok] ** 2 * np.abs(e) / np.sqrt(6.0)
+    return float(_MAD_TO_STD * np.median(s))

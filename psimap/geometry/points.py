@@ -17,6 +17,11 @@ from psimap.transforms import depth_to_world
 _GREY = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
+def rgb_to_grey(rgb: np.ndarray) -> np.ndarray:
+    """Grey [...] in [0, 1] of colours [..., 3] in [0, 1] (BT.601 luma)."""
+    return np.clip(np.asarray(rgb, np.float32) @ _GREY, 0.0, 1.0)
+
+
 def drop_nonfinite(points: np.ndarray) -> tuple[np.ndarray, int]:
     """Remove rows of `points` [N, D] holding NaN or inf. Returns (kept [M, D], number dropped)."""
     finite = np.isfinite(points).all(axis=1)
@@ -49,7 +54,7 @@ def backproject_frame(rgb: np.ndarray | None, depth: np.ndarray, K: np.ndarray, 
         img = img[v, u, :3].astype(np.float32)
         if np.asarray(rgb).dtype == np.uint8:
             img /= 255.0
-        grey = np.clip(img @ _GREY, 0.0, 1.0)
+        grey = rgb_to_grey(img)
     return np.concatenate([world.astype(np.float32), grey[:, None]], axis=1)
 
 

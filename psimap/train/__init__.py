@@ -40,6 +40,8 @@ def cli_train(opts) -> int:
         cfg.use_prior = False
     if getattr(opts, "fast", False):
         cfg.deterministic = False
+    if getattr(opts, "no_lidar", False):
+        cfg.lidar = False
     scene = train(opts.data, cfg, resume=opts.resume or None)
     save_checkpoint(opts.out, scene.state(), overwrite=opts.overwrite)
     print(f"wrote {opts.out}: {len(scene)} surfels, {scene.metrics['steps']} steps, "

@@ -118,6 +118,11 @@ class TrainConfig:
     max_width: int = _f(320, "train at most this image width (larger frames are block-averaged "
                               "down by an integer factor)")
     max_depth: float = _f(0.0, "ignore observed depth beyond this (m); 0 = keep all")
+    lidar: bool = _f(True, "use the LiDAR sweeps the frames carry (lidar_file_path): prior input and "
+                           "a range term; frames without depth images then still train colour")
+    lambda_range: float = _f(1.0, "LiDAR range term: L1 of rendered vs measured depth at each return "
+                                  "(per metre), times the depth-image / LiDAR noise ratio "
+                                  "(psimap.train.lidar.range_weight)")
 
     def to_dict(self) -> dict:
         return asdict(self)

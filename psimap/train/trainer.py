@@ -117,15 +117,20 @@ def to_train_frame(name, rgb, depth, K, c2w, semantic=None, instance=None) -> Tr
 
 
 def prepare_frames(seq, cfg: TrainConfig, log=print):
-    """Frames at training resolution (width <= cfg.max_width) plus half-resolution copies.
+    """Frames at training resolution (width <= cfg.max_width) plus half-resolution copies, and the
+    LiDAR sweeps the frames carry (psimap.train.lidar.Sweep).
 
-    Frames without any valid depth are skipped (reported by name). Returns (frames, low, skipped).
+    Frames without any valid depth are skipped (reported by name), unless the capture has LiDAR:
+    then their colour still trains the map and the sweeps supply the geometry. Returns
+    (frames, low, skipped, sweeps).
     """
+    from psimap.train.lidar import sweep_of
+
     n = len(seq)
     if n == 0:
         raise PsimapError("the data folder has no frames")
     idx = np.unique(np.linspace(0, n - 1, min(n, cfg.max_frames)).round().astype(int))
-    frames, low, skipped = [], [], []
+    kept, skipped, sweeps = [], [], []
     for i in idx:
         f = seq[int(i)]
         depth = np.asarray(f.depth, np.float32)
@@ -136,7 +141,13 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
         if not np.isfinite(rgb).all() or not np.isfinite(f.c2w).all():
             skipped.append(f.name or str(i))       # non-finite colour or pose
             continue
-        if not np.any(depth > 0):
+        sweep = sweep_of(f, f.name or str(i)) if cfg.lidar else None
+        if sweep is not None:
+            sweeps.append(sweep)
+        kept.append((f, rgb, depth, i))
+    frames, low = [], []
+    for f, rgb, depth, i in kept:
+        if not np.any(depth > 0) and not sweeps:
             skipped.append(f.name or str(i))
             continue
         factor = max(1, int(math.ceil(f.width / cfg.max_width)))
@@ -154,7 +165,7 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
     sizes = {(fr.width, fr.height) for fr in frames}
     if len(sizes) > 1:
         raise PsimapError(f"frames differ in size {sorted(sizes)}: one camera resolution expected")
-    return frames, low, skipped
+    return frames, low, skipped, sweeps
 
 
 def backprojected(frames, stride: int):
@@ -167,9 +178,28 @@ def backprojected(frames, stride: int):
     return np.concatenate(pts), np.concatenate(cols)
 
 
-def target_spacing(frames, pixels: float) -> float:
-    """`pixels` pixel footprints at the median observed depth (what the views can resolve), metres."""
-    med = float(np.median(np.concatenate([fr.depth[fr.valid].numpy()[::SPACING_DEPTH_STEP] for fr in frames])))
+def observed_points(frames, stride: int, sweeps=()):
+    """backprojected() and, with LiDAR, every return with its colour (psimap.train.lidar.colour_returns)."""
+    p, c = backprojected(frames, stride)
+    if sweeps:
+        from psimap.train.lidar import colour_returns
+
+        lp, lc = colour_returns(sweeps, frames)
+        p, c = np.concatenate([p, lp]), np.concatenate([c, lc])
+    return p, c
+
+
+def target_spacing(frames, pixels: float, sweeps=()) -> float:
+    """`pixels` pixel footprints at the median observed depth (what the views can resolve), metres.
+    Without depth images, the median depth of the LiDAR returns the frames see."""
+    z = np.concatenate([fr.depth[fr.valid].numpy()[::SPACING_DEPTH_STEP] for fr in frames])
+    if len(z) == 0 and sweeps:
+        from psimap.train.lidar import depths_in_frames
+
+        z = depths_in_frames(sweeps, frames)
+    if len(z) == 0:
+        raise PsimapError("no frame has valid depth and no LiDAR return is in view: nothing to train on")
+    med = float(np.median(z))
     focal = float(np.median([0.5 * (fr.K[0, 0] + fr.K[1, 1]) for fr in frames]))
     return pixels * med / focal
 
@@ -179,30 +209,44 @@ def point_stride(frames) -> int:
     return max(1, int(round(math.sqrt(frames[0].width * frames[0].height * len(frames) / PRIOR_POINTS))))
 
 
-def prior_points(frames, cfg: TrainConfig, log=print):
-    """4D points (x, y, z, grey) [P, 4] of every stride-th valid pixel for the SOGMM fit, and the
-    depth-noise std [P] of each (sigma(z) estimated from the frames' own depth,
-    psimap.geometry.depth_noise), or None when cfg.prior_noise is off or no noise is measurable."""
+def prior_points(frames, cfg: TrainConfig, log=print, sweeps=()):
+    """4D points (x, y, z, grey) [P, 4] of every stride-th valid pixel for the SOGMM fit, then the
+    LiDAR returns (psimap.train.lidar.prior_returns), and the noise std [P] of each (depth pixels:
+    sigma(z) estimated from the frames' own depth, psimap.geometry.depth_noise; returns: the
+    sweeps' own range noise), or None when cfg.prior_noise is off or no noise is measurable."""
     from psimap.geometry.points import backproject_frame
 
     stride = point_stride(frames)
     per_frame = [backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(), fr.c2w, stride=stride)
                  for fr in frames]
     pts4 = np.concatenate(per_frame)
+    lidar4 = np.zeros((0, 4), np.float32)
+    if sweeps:
+        from psimap.train.lidar import prior_returns
+
+        lidar4 = prior_returns(sweeps, frames, PRIOR_POINTS)
+    all4 = np.concatenate([pts4, lidar4])
     if not cfg.prior_noise:
-        return pts4, None, stride
+        return all4, None, stride
     from psimap.geometry.depth_noise import estimate_depth_noise, noise_at
 
     model = estimate_depth_noise([fr.depth.numpy() for fr in frames])
-    if len(model[0]) == 0:
-        return pts4, None, stride
-    zc, sc = model
-    log(f"depth noise from the images: sigma {sc[0] * 1000:.1f} mm at {zc[0]:.1f} m .. "
-        f"{sc[-1] * 1000:.1f} mm at {zc[-1]:.1f} m")
-    # each point's camera depth: its offset from the camera centre along the optical axis
-    z = np.concatenate([(p[:, :3] - np.asarray(fr.c2w, np.float64)[:3, 3]) @ np.asarray(fr.c2w, np.float64)[:3, 2]
-                        for p, fr in zip(per_frame, frames)])
-    return pts4, noise_at(z, model), stride
+    noise = None
+    if len(model[0]):
+        zc, sc = model
+        log(f"depth noise from the images: sigma {sc[0] * 1000:.1f} mm at {zc[0]:.1f} m .. "
+            f"{sc[-1] * 1000:.1f} mm at {zc[-1]:.1f} m")
+        # each point's camera depth: its offset from the camera centre along the optical axis
+        z = np.concatenate([(p[:, :3] - np.asarray(fr.c2w, np.float64)[:3, 3]) @ np.asarray(fr.c2w, np.float64)[:3, 2]
+                            for p, fr in zip(per_frame, frames)])
+        noise = noise_at(z, model)
+    if len(lidar4):
+        from psimap.train.lidar import range_noise
+
+        # pixels without a noise model count as noiseless (the fit's behaviour without noise)
+        noise = np.concatenate([np.zeros(len(pts4)) if noise is None else noise,
+                                np.full(len(lidar4), range_noise(sweeps))])
+    return all4, noise, stride
 
 
 def thing_points(frames, classes, stride: int) -> np.ndarray | None:
@@ -228,14 +272,19 @@ def thing_points(frames, classes, stride: int) -> np.ndarray | None:
     return np.concatenate(out)
 
 
-def fit_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=print):
+def _pad_to(mask: np.ndarray | None, n: int) -> np.ndarray | None:
+    """thing_points' mask [P] extended with False to n points (the LiDAR returns after the pixels)."""
+    return None if mask is None else np.concatenate([mask, np.zeros(n - len(mask), bool)])
+
+
+def fit_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=print, sweeps=()):
     """The SOGMM prior of the frames' back-projected points (prior_points). With cfg.thing_detail and
     masked frames, points in thing masks are fitted finer (patches at most THING_PATCH_SPACINGS thing
     spacings wide; sogmm.detail says which components are on things). Returns (sogmm, pts4, stride)."""
     from psimap.geometry.sogmm import fit_sogmm
 
-    pts4, noise, stride = prior_points(frames, cfg, log)
-    thing = thing_points(frames, classes, stride) if cfg.thing_detail else None
+    pts4, noise, stride = prior_points(frames, cfg, log, sweeps)
+    thing = _pad_to(thing_points(frames, classes, stride), len(pts4)) if cfg.thing_detail else None
     if thing is None or not thing.any():
         return fit_sogmm(pts4, noise=noise), pts4, stride
     return (fit_sogmm(pts4, noise=noise, detail=thing, detail_extent=THING_PATCH_SPACINGS * thing_spacing(spacing, cfg)),
@@ -302,7 +351,7 @@ def surfel_values(params: dict) -> dict:
                 "semantic": torch.zeros(n, 0), "instance": torch.zeros(n, 0)}
 
 
-def init_from_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=print):
+def init_from_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=print, sweeps=()):
     """SOGMM prior of the back-projected frames -> surfels on its patches at `spacing` (on average:
     finer on things, coarser elsewhere, when the frames carry masks; see relative_density).
 
@@ -313,7 +362,7 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=
     from psimap.geometry.sogmm import SOGMMIndex, sample_surfels
 
     t0 = time.perf_counter()
-    sogmm, pts4, stride = fit_prior(frames, cfg, spacing, classes, log)
+    sogmm, pts4, stride = fit_prior(frames, cfg, spacing, classes, log, sweeps)
     side = sogmm.extents()
     area = float((side[:, 0] * side[:, 1]).sum())
     n_init = max(MIN_SURFELS, int(round(area / spacing**2)))
@@ -328,14 +377,14 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=
         f"{sogmm.fit_stats.get('residual_budget', float('nan')) * 1000:.1f} mm), {time.perf_counter() - t0:.1f} s; "
         f"{n_init} surfels at {spacing * 100:.1f} cm spacing over {area:.1f} m^2")
     # colour: the image colour of the nearest observed point
-    p, c = backprojected(frames, stride)
+    p, c = observed_points(frames, stride, sweeps)
     _, nn = cKDTree(p).query(means, k=1)
     colors = c[nn]
     params = make_params(means, quats, scales, np.full(len(means), INIT_OPACITY), colors)
     return params, SOGMMIndex(sogmm), {"sogmm_K": sogmm.K, "area": area, "n_init": len(means)}
 
 
-def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
+def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print, sweeps=()):
     """Baseline without the prior (plain 2DGS): surfels at observed points, isotropic kNN scales,
     random rotations, as many as the prior would give for the voxelised observed surface."""
     from scipy.spatial import cKDTree
@@ -343,7 +392,7 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print):
     from psimap.geometry.points import voxel_downsample
 
     stride = point_stride(frames)
-    p, c = backprojected(frames, stride)
+    p, c = observed_points(frames, stride, sweeps)
     pc = voxel_downsample(np.concatenate([p, c], 1), spacing)
     means, colors = pc[:, :3], pc[:, 3:6]
     d, _ = cKDTree(means).query(means, k=4)
@@ -387,10 +436,18 @@ def render(params: dict, fr: TrainFrame):
 
 def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: float,
                regularize: bool, generator: torch.Generator | None = None,
-               geo_samples: int = 8192, geo_scale: float = 1.0) -> tuple[dict, object]:
+               geo_samples: int = 8192, geo_scale: float = 1.0, lidar_view=None,
+               range_w: float = 1.0) -> tuple[dict, object]:
     """Weighted loss terms of one view (name -> scalar tensor) and the render output; L_geo's weight
-    is cfg.lambda_geo x geo_scale (its schedule)."""
+    is cfg.lambda_geo x geo_scale (its schedule). With a LiDAR view (psimap.train.lidar.LidarView),
+    the range term of its returns joins, at cfg.lambda_range x range_w."""
     out = render(params, fr)
+    if lidar_view is not None and cfg.lambda_range > 0:
+        from psimap.train.lidar import range_l1
+
+        terms_range = cfg.lambda_range * range_w * range_l1(render(params, lidar_view).depth, lidar_view)
+    else:
+        terms_range = None
     terms = {}
     terms["rgb"] = cfg.lambda_rgb * L.rgb_loss(out.rgb, fr.rgb, cfg.ssim_weight)
     if cfg.lambda_depth > 0:
@@ -414,6 +471,8 @@ def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: f
         terms["normal"] = cfg.lambda_normal * L.normal_consistency(out.normal, out.alpha, out.depth, fr.K)
     if regularize and cfg.lambda_dist > 0:
         terms["distortion"] = cfg.lambda_dist * out.distortion.mean()
+    if terms_range is not None:
+        terms["range"] = terms_range
     return terms, out
 
 
@@ -427,6 +486,39 @@ def depth_error(params: dict, frames) -> float:
         tot += float((out.depth - fr.depth).abs()[v].sum())
         cnt += int(v.sum())
     return tot / max(cnt, 1)
+
+
+@torch.no_grad()
+def range_error(params: dict, views) -> float:
+    """Mean |rendered depth - measured depth| (m) over the returns of LiDAR views (0 without any)."""
+    from psimap.train.lidar import range_l1
+
+    tot, cnt = 0.0, 0
+    for v in views:
+        tot += float(range_l1(render(params, v).depth, v)) * v.z.numel()
+        cnt += v.z.numel()
+    return tot / max(cnt, 1)
+
+
+def lidar_setup(frames, sweeps, cfg: TrainConfig, log) -> tuple[list, float, dict]:
+    """The virtual views of the sweeps, the range term's weight (psimap.train.lidar.range_weight:
+    depth-image noise at the median depth / LiDAR range noise) and metrics for the checkpoint."""
+    if not sweeps:
+        return [], 1.0, {}
+    from psimap.geometry.depth_noise import estimate_depth_noise, noise_at
+    from psimap.train.lidar import lidar_views, range_noise, range_weight
+
+    views = [v for s in sweeps for v in lidar_views(s, cfg.max_depth)]
+    sigma_l = range_noise(sweeps)
+    model = estimate_depth_noise([fr.depth.numpy() for fr in frames])
+    z = np.concatenate([fr.depth[fr.valid].numpy()[::SPACING_DEPTH_STEP] for fr in frames])
+    sigma_d = float(noise_at(np.median(z), model)) if len(model[0]) and len(z) else None
+    w = range_weight(sigma_d, sigma_l)
+    n = sum(len(s.points) for s in sweeps)
+    log(f"LiDAR: {len(sweeps)} sweeps, {n} returns, range noise {sigma_l * 1000:.1f} mm; {len(views)} virtual "
+        f"views; range term weight {w:.2f}" + ("" if sigma_d is not None else " (no depth images)"))
+    return views, w, {"lidar_sweeps": len(sweeps), "lidar_returns": n, "lidar_noise": sigma_l,
+                      "range_weight": w}
 
 
 def panoptic_phase(params: dict, frames, classes, cfg: TrainConfig, *, index, spacing: float,
@@ -502,9 +594,12 @@ def _train(data, cfg, *, resume, progress, log, callback):
         data_path = str(data)
     else:
         seq, data_path = data, str(getattr(data, "root", ""))
-    frames, low, skipped = prepare_frames(seq, cfg, log)
-    spacing = target_spacing(frames, cfg.spacing_pixels)
+    frames, low, skipped, sweeps = prepare_frames(seq, cfg, log)
+    spacing = target_spacing(frames, cfg.spacing_pixels, sweeps)
     p_all, _ = backprojected(frames[:: max(1, len(frames) // EXTENT_FRAMES)], EXTENT_PIXEL_STEP)
+    if sweeps:
+        p_all = np.concatenate([p_all] + [s.points[::EXTENT_PIXEL_STEP] for s in sweeps])
+    views, range_w, lidar_info = lidar_setup(frames, sweeps, cfg, log)
     extent = float(np.linalg.norm(np.percentile(p_all, 100 - EXTENT_PERCENTILE, 0)
                                   - np.percentile(p_all, EXTENT_PERCENTILE, 0)))
 
@@ -522,17 +617,18 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if cfg.use_prior and cfg.lambda_geo > 0:
             from psimap.geometry.sogmm import SOGMMIndex
 
-            index = SOGMMIndex(fit_prior(frames, cfg, spacing, classes, log)[0])
+            index = SOGMMIndex(fit_prior(frames, cfg, spacing, classes, log, sweeps)[0])
         log(f"resuming from {getattr(prev, 'path', None) or 'scene'}: {len(prev)} surfels, "
             f"{steps_before} steps done")
     elif cfg.use_prior:
-        params, index, info = init_from_prior(frames, cfg, spacing, classes, log)
+        params, index, info = init_from_prior(frames, cfg, spacing, classes, log, sweeps)
     else:
-        params, index, info = init_from_points(frames, cfg, spacing, log)
+        params, index, info = init_from_points(frames, cfg, spacing, log, sweeps)
     budget = max(int(cfg.budget_factor * info["n_init"]), MIN_SURFELS)
 
     eval_frames = frames[:: max(1, len(frames) // EVAL_FRAMES)][:EVAL_FRAMES]
     depth_err_start = depth_error(params, eval_frames)
+    range_err_start = range_error(params, views)
     optimizer, lr_means0 = make_optimizer(params, cfg, extent)
     grad_stats = GradStats.zeros(params["means"].shape[0])
     iters = int(cfg.iters)
@@ -546,13 +642,16 @@ def _train(data, cfg, *, resume, progress, log, callback):
     dens_log = []
     bar = tqdm(total=iters, desc="train", disable=not progress, dynamic_ncols=True)
     order = rng.integers(0, len(frames), size=iters)
+    # one LiDAR view per step, alongside the frame (a separate stream: the frame order is unchanged)
+    view_order = np.random.default_rng(cfg.seed + 1).integers(0, max(len(views), 1), size=iters)
     for step in range(iters):
         fi = int(order[step])
         fr = low[fi] if step < lowres_steps else frames[fi]
         # L_geo's weight goes linearly from lambda_geo to geo_final x lambda_geo over the schedule
         geo_scale = 1.0 + (cfg.geo_final - 1.0) * step / max(iters - 1, 1)
         terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen,
-                                geo_scale=geo_scale)
+                                geo_scale=geo_scale, lidar_view=views[int(view_order[step])] if views else None,
+                                range_w=range_w)
         bad = backward_if_finite(terms, {k: params[k] for k in PARAM_NAMES})
         if bad is not None:
             # skip this update: one bad frame must not poison the map; a persistent one is an error
@@ -615,12 +714,17 @@ def _train(data, cfg, *, resume, progress, log, callback):
         else:
             log("panoptic: the frames carry no semantic / instance pseudo-labels; skipped")
     depth_err_end = depth_error(params, eval_frames)
+    range_err_end = range_error(params, views)
+    if views:
+        log(f"LiDAR range error {range_err_start * 100:.2f} -> {range_err_end * 100:.2f} cm over {len(views)} views")
+        lidar_info.update(range_l1_start=range_err_start, range_l1_end=range_err_end)
     loss_end = {k: float(np.mean([r[k] for r in recent if k in r])) for k in (recent[-1] if recent else {})}
     seconds = time.perf_counter() - t_start
     n = int(params["means"].shape[0])
+    depth_note = (f"depth error {depth_err_start * 100:.2f} -> {depth_err_end * 100:.2f} cm"
+                  if any(bool(fr.valid.any()) for fr in eval_frames) else "no depth images")
     log(f"trained {iters} steps in {seconds:.1f} s: loss {first_loss['total'] if first_loss else float('nan'):.4f} -> "
-        f"{loss_end.get('total', float('nan')):.4f}, depth error {depth_err_start * 100:.2f} -> "
-        f"{depth_err_end * 100:.2f} cm, {n} surfels (budget {budget})")
+        f"{loss_end.get('total', float('nan')):.4f}, {depth_note}, {n} surfels (budget {budget})")
     # CPU seconds = wall time on an idle machine (training is single-threaded by default)
     metrics = {"steps": steps_before + iters, "seconds": seconds,
                "cpu_seconds": time.process_time() - cpu_start, "surfels": n, "budget": budget,
@@ -628,7 +732,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
                "spacing": spacing, "extent": extent,
                "loss_start": first_loss or {}, "loss_end": loss_end, "depth_l1_start": depth_err_start,
                "depth_l1_end": depth_err_end, "skipped_frames": skipped, "skipped_steps": guard.skipped,
-               "history": history, "densify": dens_log, **panoptic_metrics}
+               "history": history, "densify": dens_log, **lidar_info, **panoptic_metrics}
     cams = {"K": torch.stack([fr.K.double() for fr in frames]),
             "c2w": torch.as_tensor(np.stack([fr.c2w for fr in frames])),
             "width": frames[0].width, "height": frames[0].height, "names": [fr.name for fr in frames]}
