@@ -35,6 +35,7 @@ def test_views_reproject_every_return_exactly():
     assert len(views) == 4
     assert sum(v.z.numel() for v in views) == len(sweep.points)
     for v in views:
+        assert float(v.z.min()) > 0.5                 # every return in front of its view's camera
         u, w = v.uv[:, 0].double().numpy(), v.uv[:, 1].double().numpy()
         assert u.min() >= -1e-3 and u.max() <= v.width - 1 + 1e-3 and w.min() >= -1e-3 and w.max() <= v.height - 1 + 1e-3
         world = transform_points(pixels_to_camera(u, w, v.z.double().numpy(), v.K.double().numpy()), v.c2w)
@@ -60,10 +61,11 @@ def test_sample_depth_is_bilinear_and_differentiable():
 def test_range_l1_and_weight():
     sweep = box_sweep()
     v = lidar_views(sweep)[0]
-    vv, uu = np.meshgrid(np.arange(v.height), np.arange(v.width), indexing="ij")
-    # the true depth map of the face is unknown here; a constant map off by 0.5 m from every return
-    flat = torch.full((v.height, v.width), 0.0)
-    assert abs(float(range_l1(flat, v)) - float(v.z.abs().mean())) < 1e-4
+    # a rendered depth of 0 everywhere is off by each return's whole depth; 1 m further by that + 1
+    zero = torch.zeros((v.height, v.width))
+    assert abs(float(range_l1(zero, v)) - float(v.z.abs().mean())) < 1e-4
+    far = torch.full((v.height, v.width), float(v.z.max()) + 1.0)
+    assert abs(float(range_l1(far, v)) - float((v.z.max() + 1.0 - v.z).mean())) < 1e-4
     assert range_weight(None, 0.01) == 1.0
     assert range_weight(0.005, 0.01) == pytest.approx(0.5)
     assert range_weight(1.0, 0.001) == 10.0 and range_weight(1e-6, 0.1) == 0.1
