@@ -123,6 +123,9 @@ class TrainConfig:
     lambda_range: float = _f(1.0, "LiDAR range term: L1 of rendered vs measured depth at each return "
                                   "(per metre), times the depth-image / LiDAR noise ratio "
                                   "(psimap.train.lidar.range_weight)")
+    lidar_every: int = _f(2, "render one LiDAR view for the range term every this many steps (a view "
+                             "costs about half a 160x120 frame: most of a render's cost is the surfels "
+                             "a 90-degree view sees)")
 
     def to_dict(self) -> dict:
         return asdict(self)

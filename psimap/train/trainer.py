@@ -644,13 +644,15 @@ def _train(data, cfg, *, resume, progress, log, callback):
     order = rng.integers(0, len(frames), size=iters)
     # one LiDAR view per step, alongside the frame (a separate stream: the frame order is unchanged)
     view_order = np.random.default_rng(cfg.seed + 1).integers(0, max(len(views), 1), size=iters)
+    lidar_every = max(1, int(cfg.lidar_every))
     for step in range(iters):
         fi = int(order[step])
         fr = low[fi] if step < lowres_steps else frames[fi]
         # L_geo's weight goes linearly from lambda_geo to geo_final x lambda_geo over the schedule
         geo_scale = 1.0 + (cfg.geo_final - 1.0) * step / max(iters - 1, 1)
         terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen,
-                                geo_scale=geo_scale, lidar_view=views[int(view_order[step])] if views else None,
+                                geo_scale=geo_scale,
+                                lidar_view=views[int(view_order[step])] if views and step % lidar_every == 0 else None,
                                 range_w=range_w)
         bad = backward_if_finite(terms, {k: params[k] for k in PARAM_NAMES})
         if bad is not None:
