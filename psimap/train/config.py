@@ -121,8 +121,8 @@ class TrainConfig:
     lidar: bool = _f(True, "use the LiDAR sweeps the frames carry (lidar_file_path): prior input and "
                            "a range term; frames without depth images then still train colour")
     lambda_range: float = _f(1.0, "LiDAR range term: L1 of rendered vs measured depth at each return "
-                                  "(per metre), times the depth-image / LiDAR noise ratio "
-                                  "(psimap.train.lidar.range_weight)")
+                                  "(per metre), each return weighted by the depth-image noise at its "
+                                  "range / the LiDAR noise (psimap.train.lidar.range_weight)")
     lidar_every: int = _f(2, "render one LiDAR view for the range term every this many steps (a view "
                              "costs about half a 160x120 frame: most of a render's cost is the surfels "
                              "a 90-degree view sees)")

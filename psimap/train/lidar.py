@@ -5,9 +5,10 @@ A sweep is world points [N, 3] with the sensor position. The renderer is a pinho
 each sweep is seen through virtual pinhole cameras at its origin: the six faces of a cube (90° each),
 each cropped to the pixels its returns fall on, at the sweep's own angular resolution. The range term
 compares the rendered depth, sampled bilinearly at each return's exact sub-pixel position (no
-quantisation to pixel centres), with the return's depth along that camera's axis. Its weight is the
-ratio of the depth images' noise (psimap.geometry.depth_noise, the model the prior already uses) to
-the LiDAR's own range noise, estimated from the sweep: the more precise sensor counts for more.
+quantisation to pixel centres), with the return's depth along that camera's axis. Each return is
+weighted by the ratio of the depth images' noise at its range (psimap.geometry.depth_noise, the model
+the prior already uses) to the LiDAR's own range noise, estimated from the sweep: the more precise
+sensor counts for more, so far returns, where a depth camera is poor, count most.
 """
 from __future__ import annotations
 
@@ -64,8 +65,9 @@ class LidarView:
     """A virtual pinhole camera at a sweep's origin and the returns it sees.
 
     K [3, 3] float32 tensor, viewmat [4, 4] float32 world-to-camera, c2w [4, 4] float64 numpy,
-    width / height (pixels); uv [M, 2] float32 sub-pixel image coordinates of the returns and z [M]
-    their depths along the optical axis (metres)."""
+    width / height (pixels); uv [M, 2] float32 sub-pixel image coordinates of the returns, z [M]
+    their depths along the optical axis and r [M] their ranges (metres); w [M] the range term's
+    weight of each (range_weight; ones until the trainer sets them)."""
 
     name: str
     K: torch.Tensor
@@ -75,6 +77,8 @@ class LidarView:
     height: int
     uv: torch.Tensor
     z: torch.Tensor
+    r: np.ndarray
+    w: torch.Tensor
 
 
 def sweep_of(frame, name: str = "") -> Sweep | None:
@@ -142,7 +146,8 @@ def lidar_views(sweep: Sweep, max_depth: float = 0.0) -> list[LidarView]:
             name=f"{sweep.name}/face{k}", K=torch.as_tensor(K, dtype=torch.float32),
             viewmat=torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32), c2w=c2w, width=w, height=h,
             uv=torch.as_tensor(np.stack([u - u0, v - v0], 1), dtype=torch.float32),
-            z=torch.as_tensor(zc, dtype=torch.float32)))
+            z=torch.as_tensor(zc, dtype=torch.float32), r=np.linalg.norm(rel[mine], axis=1),
+            w=torch.ones(len(zc))))
     return views
 
 
@@ -157,11 +162,13 @@ def sample_depth(depth: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
                                            align_corners=True).view(-1)
 
 
-def range_l1(depth: torch.Tensor, view: LidarView) -> torch.Tensor:
-    """Mean |rendered depth - measured depth| over the returns of a view (metres); depth [H, W]."""
+def range_l1(depth: torch.Tensor, view: LidarView, weighted: bool = True) -> torch.Tensor:
+    """Mean |rendered depth - measured depth| over the returns of a view (metres), each times its
+    weight view.w when `weighted`; depth [H, W]."""
     if view.z.numel() == 0:
         return depth.sum() * 0.0
-    return (sample_depth(depth, view.uv) - view.z).abs().mean()
+    err = (sample_depth(depth, view.uv) - view.z).abs()
+    return (err * view.w).mean() if weighted else err.mean()
 
 
 def range_noise(sweeps: list[Sweep]) -> float:
@@ -173,13 +180,16 @@ def range_noise(sweeps: list[Sweep]) -> float:
     return float(np.median(est)) if est else DEFAULT_RANGE_NOISE
 
 
-def range_weight(depth_sigma: float | None, lidar_sigma: float) -> float:
-    """Weight of the range term beside the depth-image term (both L1 per metre): depth-image noise
-    over range noise, within WEIGHT_RANGE; 1 without depth images (the range term is then the only
-    geometry data term and takes the depth term's place)."""
-    if depth_sigma is None or not np.isfinite(depth_sigma) or depth_sigma <= 0:
+def range_weight(depth_sigma, lidar_sigma: float):
+    """Weight of a return in the range term beside the depth-image term (both L1 per metre): the
+    depth images' noise at its range over the LiDAR's range noise, within WEIGHT_RANGE. depth_sigma:
+    a float or [M] array; None (no depth images) gives 1: the range term is then the only geometry
+    data term and takes the depth term's place."""
+    if depth_sigma is None:
         return 1.0
-    return float(np.clip(depth_sigma / max(lidar_sigma, 1e-5), *WEIGHT_RANGE))
+    ratio = np.asarray(depth_sigma, np.float64) / max(lidar_sigma, 1e-5)
+    out = np.clip(np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0), *WEIGHT_RANGE)
+    return float(out) if out.ndim == 0 else out
 
 
 def colour_returns(sweeps: list[Sweep], frames) -> tuple[np.ndarray, np.ndarray]:

@@ -436,16 +436,15 @@ def render(params: dict, fr: TrainFrame):
 
 def loss_terms(params: dict, fr: TrainFrame, cfg: TrainConfig, index, spacing: float,
                regularize: bool, generator: torch.Generator | None = None,
-               geo_samples: int = 8192, geo_scale: float = 1.0, lidar_view=None,
-               range_w: float = 1.0) -> tuple[dict, object]:
+               geo_samples: int = 8192, geo_scale: float = 1.0, lidar_view=None) -> tuple[dict, object]:
     """Weighted loss terms of one view (name -> scalar tensor) and the render output; L_geo's weight
     is cfg.lambda_geo x geo_scale (its schedule). With a LiDAR view (psimap.train.lidar.LidarView),
-    the range term of its returns joins, at cfg.lambda_range x range_w."""
+    the range term of its returns joins, at cfg.lambda_range (each return with its weight)."""
     out = render(params, fr)
     if lidar_view is not None and cfg.lambda_range > 0:
         from psimap.train.lidar import range_l1
 
-        terms_range = cfg.lambda_range * range_w * range_l1(render(params, lidar_view).depth, lidar_view)
+        terms_range = cfg.lambda_range * range_l1(render(params, lidar_view).depth, lidar_view)
     else:
         terms_range = None
     terms = {}
@@ -495,30 +494,32 @@ def range_error(params: dict, views) -> float:
 
     tot, cnt = 0.0, 0
     for v in views:
-        tot += float(range_l1(render(params, v).depth, v)) * v.z.numel()
+        tot += float(range_l1(render(params, v).depth, v, weighted=False)) * v.z.numel()
         cnt += v.z.numel()
     return tot / max(cnt, 1)
 
 
-def lidar_setup(frames, sweeps, cfg: TrainConfig, log) -> tuple[list, float, dict]:
-    """The virtual views of the sweeps, the range term's weight (psimap.train.lidar.range_weight:
-    depth-image noise at the median depth / LiDAR range noise) and metrics for the checkpoint."""
+def lidar_setup(frames, sweeps, cfg: TrainConfig, log) -> tuple[list, dict]:
+    """The virtual views of the sweeps with each return's weight (psimap.train.lidar.range_weight:
+    depth-image noise at its range / LiDAR range noise) and metrics for the checkpoint."""
     if not sweeps:
-        return [], 1.0, {}
+        return [], {}
     from psimap.geometry.depth_noise import estimate_depth_noise, noise_at
     from psimap.train.lidar import lidar_views, range_noise, range_weight
 
     views = [v for s in sweeps for v in lidar_views(s, cfg.max_depth)]
     sigma_l = range_noise(sweeps)
     model = estimate_depth_noise([fr.depth.numpy() for fr in frames])
-    z = np.concatenate([fr.depth[fr.valid].numpy()[::SPACING_DEPTH_STEP] for fr in frames])
-    sigma_d = float(noise_at(np.median(z), model)) if len(model[0]) and len(z) else None
-    w = range_weight(sigma_d, sigma_l)
+    for v in views:
+        w = range_weight(noise_at(v.r, model) if len(model[0]) else None, sigma_l)
+        v.w = torch.as_tensor(np.broadcast_to(w, v.r.shape), dtype=torch.float32)
     n = sum(len(s.points) for s in sweeps)
+    w_all = torch.cat([v.w for v in views]) if views else torch.ones(1)
     log(f"LiDAR: {len(sweeps)} sweeps, {n} returns, range noise {sigma_l * 1000:.1f} mm; {len(views)} virtual "
-        f"views; range term weight {w:.2f}" + ("" if sigma_d is not None else " (no depth images)"))
-    return views, w, {"lidar_sweeps": len(sweeps), "lidar_returns": n, "lidar_noise": sigma_l,
-                      "range_weight": w}
+        f"views; return weights {float(w_all.min()):.2f}..{float(w_all.max()):.2f} (median "
+        f"{float(w_all.median()):.2f})" + ("" if len(model[0]) else " (no depth images)"))
+    return views, {"lidar_sweeps": len(sweeps), "lidar_returns": n, "lidar_noise": sigma_l,
+                   "range_weight": float(w_all.mean())}
 
 
 def panoptic_phase(params: dict, frames, classes, cfg: TrainConfig, *, index, spacing: float,
@@ -599,7 +600,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
     p_all, _ = backprojected(frames[:: max(1, len(frames) // EXTENT_FRAMES)], EXTENT_PIXEL_STEP)
     if sweeps:
         p_all = np.concatenate([p_all] + [s.points[::EXTENT_PIXEL_STEP] for s in sweeps])
-    views, range_w, lidar_info = lidar_setup(frames, sweeps, cfg, log)
+    views, lidar_info = lidar_setup(frames, sweeps, cfg, log)
     extent = float(np.linalg.norm(np.percentile(p_all, 100 - EXTENT_PERCENTILE, 0)
                                   - np.percentile(p_all, EXTENT_PERCENTILE, 0)))
 
@@ -652,8 +653,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
         geo_scale = 1.0 + (cfg.geo_final - 1.0) * step / max(iters - 1, 1)
         terms, out = loss_terms(params, fr, cfg, index, spacing, step >= reg_from, gen,
                                 geo_scale=geo_scale,
-                                lidar_view=views[int(view_order[step])] if views and step % lidar_every == 0 else None,
-                                range_w=range_w)
+                                lidar_view=views[int(view_order[step])] if views and step % lidar_every == 0 else None)
         bad = backward_if_finite(terms, {k: params[k] for k in PARAM_NAMES})
         if bad is not None:
             # skip this update: one bad frame must not poison the map; a persistent one is an error
