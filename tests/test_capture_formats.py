@@ -67,8 +67,8 @@ def _tum(root: Path, frames, intrinsics=True) -> list[float]:
     (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
     (root / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
     if intrinsics:
-        K = frames[0].K
-        (root / "intrinsics.txt").write_text(f"# fx fy cx cy\n{float(K[0, 0])!r} {float(K[1, 1])!r} {float(K[0, 2])!r} {float(K[1, 2])!r}\n")
+        fx, fy, cx, cy = (float(v) for v in frames[0].K[[0, 1, 0, 1], [0, 1, 2, 2]])
+        (root / "intrinsics.txt").write_text(f"# fx fy cx cy\n{fx!r} {fy!r} {cx!r} {cy!r}\n")
     return stamps
 
 
@@ -410,3 +410,23 @@ def test_bad_capture_through_psimap_train_is_one_line_and_no_checkpoint(tmp_path
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("psimap train: error: ") and "groundtruth.txt line 4" in err[0]
     assert not out.exists()
+
+
+def test_psimap_train_prints_what_it_read(tmp_path, frames, capsys, monkeypatch):
+    """`psimap train` states how the capture was understood before training on it."""
+    import psimap.train.trainer as trainer
+    from psimap.cli import main
+
+    def stop(seq, cfg, resume=None):
+        raise PsimapError(f"stopped before training {len(seq)} frames")
+
+    monkeypatch.setattr(trainer, "train", stop)
+    root = tmp_path / "bop"
+    _bop(root, frames[:3])
+    assert main(["train", str(root), "--out", str(tmp_path / "x.ckpt")]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == f"bop {root}: 3 frames, 64x48"
+    assert err[1].startswith("  depth: uint16 PNG x depth_scale mm") and err[2].startswith("  poses: scene_camera.json")
+    assert err[4].startswith("  labels: mask_visib/: instance = gt index + 1, class = obj_id (3 object classes)")
+    assert err[-1] == "psimap train: error: stopped before training 3 frames"
+    assert not (tmp_path / "x.ckpt").exists()

@@ -1,8 +1,8 @@
 """psimap.data: posed RGB-D frames from the psimap scene folder and from real-data layouts.
 
-`load(path)` auto-detects the layout (scene format / nerfstudio, 7-Scenes, ScanNet, Replica, TUM RGB-D, BOP) and returns a lazily
-loaded `FrameSequence` of `Frame`s. Attributes are imported on first use so `import psimap.data`
-stays cheap.
+`load(path)` auto-detects the layout (scene format / nerfstudio, 7-Scenes, ScanNet, Replica, TUM RGB-D,
+BOP) and returns a lazily loaded `FrameSequence` of `Frame`s (`.describe()`: what was read and
+assumed). Attributes are imported on first use so `import psimap.data` stays cheap.
 """
 from __future__ import annotations
 

@@ -321,7 +321,7 @@ def load_bop(root: str | os.PathLike) -> FrameSequence:
                 if not p.is_file():
                     raise PsimapError(f"missing file: {p} (scene_gt.json lists {len(objects[i])} objects "
                                       f"in image {i})")
-        records.append((color, depth, K, c2w[i], scale, stem, masks, objects[i]))
+        records.append((color, depth, K, c2w[i], scale, stem, masks if masks_dir.is_dir() else None, objects[i]))
     if not records:
         raise PsimapError(f"BOP scene {root}: no usable image")
     report.resolution = image_size(records[0][1])
@@ -341,7 +341,7 @@ def load_bop(root: str | os.PathLike) -> FrameSequence:
             raise PsimapError(f"colour image {color} is {rgb.shape[1]}x{rgb.shape[0]} but depth image "
                               f"{depth_path} is {depth.shape[1]}x{depth.shape[0]}")
         labels = {}
-        if masks:
+        if masks is not None:           # mask_visib/ exists: an image without objects is all void
             semantic = np.zeros(depth.shape, np.uint16)
             instance = np.zeros(depth.shape, np.uint16)
             # Farthest centre first, so the nearer object (the occluder) paints last and wins;
