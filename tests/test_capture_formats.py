@@ -289,7 +289,7 @@ def _nerfstudio(root: Path, frames, **extra) -> None:
     root.mkdir(parents=True)
     K = frames[0].K
     meta = {"camera_model": "OPENCV", "fl_x": 2 * K[0, 0], "fl_y": 2 * K[1, 1],
-            "cx": 2 * (K[0, 2] + 0.5), "cy": 2 * (K[1, 2] + 0.5), "w": 128, "h": 96,
+            "cx": 2 * (K[0, 2] + 0.5), "cy": 2 * (K[1, 2] + 0.5), "w": 2 * frames[0].width, "h": 2 * frames[0].height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
             "applied_transform": np.eye(4)[:3].tolist(), "frames": [], **extra}
     for i, f in enumerate(frames):

@@ -48,6 +48,7 @@ def cli_train(opts) -> int:
     # before minutes of training on it.
     seq = load(opts.data)
     print(seq.describe(), file=sys.stderr)
+    seq.root = str(opts.data)           # the checkpoint records the data path as typed, as before
     scene = train(seq, cfg, resume=opts.resume or None)
     save_checkpoint(opts.out, scene.state(), overwrite=opts.overwrite)
     print(f"wrote {opts.out}: {len(scene)} surfels, {scene.metrics['steps']} steps, "
