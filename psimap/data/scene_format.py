@@ -24,6 +24,7 @@ import numpy as np
 from psimap import PsimapError
 from psimap.data.frames import ClassInfo, Frame, FrameSequence
 from psimap.io_utils import atomic_dir, atomic_path, check_output_dir
+from psimap.transforms import PIXEL_CENTER
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -506,8 +507,6 @@ _ASPECT_TOLERANCE = 0.01
 
 def _resized_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """K [3, 3] of the same view resampled by sx, sy (pixel edges scale, centres do not)."""
-    from psimap.transforms import PIXEL_CENTER
-
     K = np.array(K, np.float64)
     K[0, 0], K[1, 1] = K[0, 0] * sx, K[1, 1] * sy
     K[0, 2] = (K[0, 2] + 0.5 - PIXEL_CENTER) * sx - 0.5 + PIXEL_CENTER
@@ -557,8 +556,8 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
         raise PsimapError(f"{tf_path}: depth_unit_scale_factor must be > 0, got {meta.get('depth_unit_scale_factor')}")
     if "depth_unit_scale_factor" not in meta:
         report.assumed.append("no depth_unit_scale_factor: depth PNGs in millimetres (nerfstudio's default 0.001)")
-    # nerfstudio casts a pixel's ray through its centre at index + 0.5; psimap's centre is the index.
-    half = 0.5 if layout == "nerfstudio" else 0.0
+    # nerfstudio casts a pixel's ray through its centre at index + 0.5; psimap's is PIXEL_CENTER.
+    half = 0.5 - PIXEL_CENTER if layout == "nerfstudio" else 0.0
     try:
         classes = [ClassInfo(int(c["id"]), str(c["name"]), bool(c.get("isthing", True)))
                    for c in meta.get("classes", [])]
