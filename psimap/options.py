@@ -82,7 +82,8 @@ class DemoOptions:
 
 @dataclass
 class TrainOptions:
-    data: str = pos("scene folder (scene format, ScanNet, Replica or 7-Scenes layout)")
+    data: str = pos("capture folder: scene format or nerfstudio transforms.json, ScanNet, Replica, 7-Scenes, "
+                          "TUM RGB-D or BOP layout (docs/scene-format.md)")
     out: str = opt("scene.ckpt", "checkpoint to write")
     iters: int = opt(0, "training iterations (0 = the config default)")
     seed: int = opt(0, "random seed")

@@ -35,6 +35,7 @@ def test_overlay_supplies_labels_and_classes(tmp_path):
         assert np.array_equal(f.semantic, written[name][0]) and np.array_equal(f.instance, written[name][1])
         assert f.instance.max() > 255                   # 16-bit ids survive
     assert seq[1].semantic is None and seq[1].instance is None   # a frame the file does not list
+    assert "labels.json (test): 2 of 3 frames, 2 classes (1 things)" in seq.describe()
     # nothing temporary is left behind
     assert sorted(p.name for p in root.iterdir() if p.name.startswith(".")) == []
 

@@ -321,3 +321,31 @@ def test_shared_7scenes_chess():
     # and the check has teeth: reading the poses as world-to-camera breaks it (measured: 34 cm)
     wrong, _ = _reprojection(a, b, c2w_a=np.linalg.inv(a.c2w))
     assert wrong > 0.1
+
+
+def test_each_loader_states_what_it_read_and_assumed(tmp_path):
+    """`FrameSequence.report` / `describe()`: resolution, depth scale, poses, intrinsics source, skipped
+    frames and assumptions, per layout."""
+    _seven_scenes(tmp_path / "chess")
+    (tmp_path / "chess" / "camera-intrinsics.txt").unlink()
+    r = load(tmp_path / "chess").report
+    assert r.resolution == (W, H) and "0.001" in r.depth and "65535" in r.depth
+    assert r.assumed == ["no camera-intrinsics.txt: the 7-Scenes Kinect default intrinsics"]
+    assert "585" in r.intrinsics and "OpenCV" in r.poses
+
+    _scannet(tmp_path / "scan", n=4, intrinsic_depth=False)
+    np.savetxt(tmp_path / "scan" / "pose" / "2.txt", np.full((4, 4), -np.inf))
+    with pytest.warns(UserWarning):
+        seq = load(tmp_path / "scan")
+    r = seq.report
+    assert r.skipped == ["1 of 4 frames: non-finite pose (tracking lost)"]
+    assert r.intrinsics == f"intrinsic/intrinsic_color.txt scaled to the depth size {W}x{H}"
+    assert r.assumed == [f"colour {2 * W}x{2 * H} resized to the depth size"] and r.labels.startswith("label-filt/")
+    lines = seq.describe().splitlines()
+    assert lines[0] == f"scannet {tmp_path / 'scan'}: 3 frames, {W}x{H}"
+    assert lines[1] == "  skipped 1 of 4 frames: non-finite pose (tracking lost)"
+
+    _replica(tmp_path / "replica" / "room0", cam=False)
+    r = load(tmp_path / "replica" / "room0").report
+    assert r.resolution == (1200, 680) and "6553.5" in r.depth
+    assert r.assumed == ["no cam_params.json: the standard Replica camera"]

@@ -59,11 +59,27 @@ class ClassInfo:
 
 
 @dataclass
+class LoadReport:
+    """What a loader read and what it assumed, so a user sees how their files were understood
+    (`FrameSequence.describe()`). Each field is one short sentence; `skipped` and `assumed` one
+    entry per reason ("3 frames: pose non-finite (tracking lost)")."""
+
+    resolution: tuple[int, int] = (0, 0)      # (W, H) of the frames as loaded
+    depth: str = ""                           # how stored depth values become metres
+    poses: str = ""                           # where poses come from, their convention
+    intrinsics: str = ""                      # where K comes from
+    labels: str = ""                          # where semantic / instance maps come from
+    skipped: list[str] = field(default_factory=list)
+    assumed: list[str] = field(default_factory=list)
+
+
+@dataclass
 class FrameSequence(Sequence):
     """A lazily loaded sequence of frames: `len(seq)`, `seq[i]` -> Frame (read from disk on access).
 
     `loader(i)` reads frame i. `classes` is the class table (COCO panoptic style, may be empty).
-    `root` is the folder it came from; `layout` names the detected layout.
+    `root` is the folder it came from; `layout` names the detected layout; `report` says what the
+    loader read and assumed (`describe()`).
     """
 
     loader: Callable[[int], Frame]
@@ -72,6 +88,20 @@ class FrameSequence(Sequence):
     root: str = ""
     layout: str = ""
     names: list[str] = field(default_factory=list)
+    report: LoadReport = field(default_factory=LoadReport)
+
+    def describe(self) -> str:
+        """A few lines: layout, frame count (and skipped), resolution, depth, poses, intrinsics,
+        labels, and every assumption the loader made."""
+        r = self.report
+        size = f", {r.resolution[0]}x{r.resolution[1]}" if r.resolution[0] else ""
+        lines = [f"{self.layout or 'frames'} {self.root}: {self.count} frames{size}"]
+        lines += [f"  skipped {s}" for s in r.skipped]
+        for key in ("depth", "poses", "intrinsics", "labels"):
+            if getattr(r, key):
+                lines.append(f"  {key}: {getattr(r, key)}")
+        lines += [f"  assumed: {a}" for a in r.assumed]
+        return "\n".join(lines)
 
     def __len__(self) -> int:
         return self.count

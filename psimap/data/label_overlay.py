@@ -173,4 +173,16 @@ def apply_label_overlay(seq: FrameSequence) -> FrameSequence:
         return f
 
     # replace(): every other field a loader filled (what it read and assumed) is kept
-    return dataclasses.replace(seq, loader=load_frame, classes=classes)
+    report = dataclasses.replace(seq.report, skipped=list(seq.report.skipped), assumed=list(seq.report.assumed))
+    n_things = sum(c.isthing for c in classes)
+    report.labels = (f"{MANIFEST} ({source_of(seq.root)}): {len(frames)} of {seq.count} frames, "
+                     f"{len(classes)} classes ({n_things} things); the layout's own labels are not used")
+    return dataclasses.replace(seq, loader=load_frame, classes=classes, report=report)
+
+
+def source_of(root) -> str:
+    """The `source` a label manifest names (what wrote it), or "?"."""
+    try:
+        return str(json.loads((Path(root) / MANIFEST).read_text()).get("source", "?"))
+    except (OSError, ValueError, AttributeError):
+        return "?"

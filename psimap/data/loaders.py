@@ -1,7 +1,7 @@
 """Real-data layouts -> lazily loaded FrameSequence, and `load(path)` that detects the layout.
 
 Layouts (all poses camera-to-world, OpenCV camera axes on disk already, so no conversion):
-- psimap scene folder (`transforms.json`, see scene_format).
+- psimap scene folder, or nerfstudio's processed layout (`transforms.json`, see scene_format).
 - 7-Scenes / tsdf-fusion: `frame-NNNNNN.color.jpg|png`, `.depth.png` (uint16 mm, 0 and 65535
   invalid), `.pose.txt` (4x4), `camera-intrinsics.txt` (3x3; the 7-Scenes Kinect default
   fx=fy=585, cx=320, cy=240 when absent, as in the original per-sequence folders).
@@ -18,6 +18,8 @@ Layouts (all poses camera-to-world, OpenCV camera axes on disk already, so no co
   metres = value / 6553.5), `traj.txt` (one row-major 4x4 c2w per line). Intrinsics from
   `cam_params.json` (Replica's {"camera": {w, h, fx, fy, cx, cy, scale}}) next to the folder or one
   level up, else the standard Replica ones (1200x680, fx=fy=600, cx=599.5, cy=339.5).
+- TUM RGB-D and BOP scene folders: psimap/data/capture_formats.py.
+Each fills `FrameSequence.report` (what it read, skipped and assumed).
 """
 from __future__ import annotations
 
@@ -32,10 +34,11 @@ from typing import Callable
 import numpy as np
 
 from psimap import PsimapError
-from psimap.data.frames import ClassInfo, Frame, FrameSequence
+from psimap.data.capture_formats import is_bop, is_tum, load_bop, load_tum
+from psimap.data.frames import ClassInfo, Frame, FrameSequence, LoadReport
 from psimap.data.label_overlay import apply_label_overlay
-from psimap.data.scene_format import (TRANSFORMS, check_pose, read_depth_png, read_label_png, read_rgb,
-                                      read_scene)
+from psimap.data.scene_format import (TRANSFORMS, check_pose, image_size, read_depth_png, read_label_png,
+                                      read_rgb, read_scene)
 
 SEVEN_SCENES_K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
 REPLICA_CAMERA = {"w": 1200, "h": 680, "fx": 600.0, "fy": 600.0, "cx": 599.5, "cy": 339.5, "scale": 6553.5}
@@ -59,9 +62,10 @@ def _is_7scenes(p: Path) -> bool:
 
 
 def load(path: str | os.PathLike) -> FrameSequence:
-    """Open posed RGB-D frames; the layout (LAYOUTS: psimap scene folder, 7-Scenes, ScanNet,
-    Replica) is detected from the files present. Returns a FrameSequence whose frames are read on
-    access."""
+    """Open posed RGB-D frames; the layout (LAYOUTS: psimap scene folder or nerfstudio
+    transforms.json, 7-Scenes, ScanNet, Replica, TUM RGB-D, BOP) is detected from the files present.
+    Returns a FrameSequence whose frames are read on access; `.describe()` says what was read and
+    assumed."""
     p = Path(path)
     if not p.exists():
         raise PsimapError(f"no such file or folder: {p}")
@@ -113,17 +117,6 @@ def _pose(path: Path) -> np.ndarray:
     return m
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    """(W, H) from the header only."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as img:
-            return img.size
-    except (UnidentifiedImageError, OSError) as e:
-        raise PsimapError(f"cannot read image {path}: {e}") from None
-
-
 def _numbered(folder: Path, pattern: str) -> dict[int, Path]:
     """{frame number: path} for files whose name matches `pattern` (one int group)."""
     rx = re.compile(pattern)
@@ -158,10 +151,15 @@ def load_7scenes(root: str | os.PathLike) -> FrameSequence:
     ids = sorted(set(colors) | set(poses))
     if not ids:
         raise PsimapError(f"{root}: no frame-NNNNNN.color.jpg / .pose.txt files")
+    report = LoadReport(depth="uint16 PNG x 0.001 m (millimetres; 0 and 65535 invalid)",
+                        poses="frame-*.pose.txt, camera-to-world 4x4, OpenCV camera axes")
     if (root / "camera-intrinsics.txt").is_file():
         K = _intrinsics(root / "camera-intrinsics.txt")
+        report.intrinsics = "camera-intrinsics.txt"
     else:
         K = SEVEN_SCENES_K.copy()
+        report.intrinsics = "7-Scenes Kinect default fx=fy=585, cx=320, cy=240"
+        report.assumed.append("no camera-intrinsics.txt: the 7-Scenes Kinect default intrinsics")
     records = []
     for i in ids:
         stem = f"frame-{i:06d}"
@@ -173,13 +171,16 @@ def load_7scenes(root: str | os.PathLike) -> FrameSequence:
                 raise PsimapError(f"missing file: {p}")
         records.append((color, depth, check_pose(_pose(pose_path), str(pose_path)), stem))
 
+    report.resolution = image_size(records[0][1])
+    report.labels = "none (7-Scenes has no masks)"
+
     def load_frame(i: int) -> Frame:
         color, depth, c2w, stem = records[i]
         # Kinect raw depth: 65535 marks pixels without a measurement, like 0.
         return _rgbd_frame(color, depth, 0.001, (0, 65535), K, c2w, stem)
 
     return FrameSequence(loader=load_frame, count=len(records), classes=[], root=str(root), layout="7scenes",
-                         names=[r[3] for r in records])
+                         names=[r[3] for r in records], report=report)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -222,13 +223,17 @@ def load_scannet(root: str | os.PathLike) -> FrameSequence:
     depth0 = root / "depth" / f"{ids[0]}.png"
     if not depth0.is_file():
         raise PsimapError(f"missing file: {depth0}")
-    dw, dh = _image_size(depth0)
+    dw, dh = image_size(depth0)
     intr = root / "intrinsic"
+    report = LoadReport(resolution=(dw, dh), depth="uint16 PNG x 0.001 m (millimetres; 0 invalid)",
+                        poses="pose/N.txt, camera-to-world 4x4, OpenCV camera axes")
     if (intr / "intrinsic_depth.txt").is_file():
         K = _intrinsics(intr / "intrinsic_depth.txt")
+        report.intrinsics = "intrinsic/intrinsic_depth.txt"
     elif (intr / "intrinsic_color.txt").is_file():
+        report.intrinsics = f"intrinsic/intrinsic_color.txt scaled to the depth size {dw}x{dh}"
         K = _intrinsics(intr / "intrinsic_color.txt")
-        cw, ch = _image_size(colors[ids[0]])
+        cw, ch = image_size(colors[ids[0]])
         # Pixel-corner convention: scaling an image by s maps (u + 0.5) to s (u + 0.5).
         sx, sy = dw / cw, dh / ch
         K = np.array([[K[0, 0] * sx, 0.0, (K[0, 2] + 0.5) * sx - 0.5],
@@ -254,11 +259,18 @@ def load_scannet(root: str | os.PathLike) -> FrameSequence:
                 labels[key] = p
         records.append((colors[i], depth, check_pose(c2w, str(pose_path)), str(i), labels))
     if skipped:
+        report.skipped.append(f"{len(skipped)} of {len(ids)} frames: non-finite pose (tracking lost)")
         shown = ", ".join(str(p) for p in skipped[:3]) + (" ..." if len(skipped) > 3 else "")
         warnings.warn(f"ScanNet {root}: skipped {len(skipped)} of {len(ids)} frames with non-finite poses "
                       f"(tracking lost): {shown}", stacklevel=2)
     if not records:
         raise PsimapError(f"ScanNet {root}: every pose is non-finite, no usable frame")
+
+    classes = _scannet_classes(root)
+    report.labels = ("label-filt/ + instance-filt/ (ScanNet's annotation, also the ground truth), "
+                     f"{len(classes)} classes" if records[0][4] else "none (no label-filt/ or instance-filt/)")
+    if image_size(records[0][0]) != (dw, dh):
+        report.assumed.append(f"colour {'x'.join(map(str, image_size(records[0][0])))} resized to the depth size")
 
     def load_frame(i: int) -> Frame:
         color, depth, c2w, name, labels = records[i]
@@ -271,14 +283,15 @@ def load_scannet(root: str | os.PathLike) -> FrameSequence:
             raise PsimapError(f"depth image {depth} is {f.width}x{f.height}, expected {dw}x{dh} like {depth0}")
         return f
 
-    return FrameSequence(loader=load_frame, count=len(records), classes=_scannet_classes(root), root=str(root),
-                         layout="scannet", names=[r[3] for r in records])
+    return FrameSequence(loader=load_frame, count=len(records), classes=classes, root=str(root),
+                         layout="scannet", names=[r[3] for r in records], report=report)
 
 
 # --------------------------------------------------------------------------------------------------
 
 
-def _replica_camera(root: Path) -> dict:
+def _replica_camera(root: Path) -> tuple[dict, Path | None]:
+    """Camera parameters and the file they came from (None: the Replica default)."""
     for p in (root / "cam_params.json", root.parent / "cam_params.json"):
         if p.is_file():
             try:
@@ -290,8 +303,8 @@ def _replica_camera(root: Path) -> dict:
                 raise PsimapError(f"{p}: expected {{\"camera\": {{w, h, fx, fy, cx, cy[, scale]}}}}") from None
             if min(out.values()) <= 0 or not all(np.isfinite(list(out.values()))):
                 raise PsimapError(f"{p}: camera parameters must be finite and positive")
-            return out
-    return dict(REPLICA_CAMERA)
+            return out, p
+    return dict(REPLICA_CAMERA), None
 
 
 def load_replica(root: str | os.PathLike) -> FrameSequence:
@@ -309,7 +322,14 @@ def load_replica(root: str | os.PathLike) -> FrameSequence:
     rows = [r for r in traj.read_text().splitlines() if r.strip()]
     if len(rows) < len(ids):
         raise PsimapError(f"{traj} has {len(rows)} poses for {len(ids)} frames")
-    cam = _replica_camera(root)
+    cam, cam_file = _replica_camera(root)
+    report = LoadReport(resolution=(int(round(cam["w"])), int(round(cam["h"]))),
+                        depth=f"uint16 PNG / {cam['scale']:g} m (0 invalid)",
+                        poses="traj.txt, one row-major camera-to-world 4x4 per line, OpenCV camera axes",
+                        intrinsics=str(cam_file) if cam_file else "the standard Replica camera (1200x680, fx=fy=600)",
+                        labels="none")
+    if cam_file is None:
+        report.assumed.append("no cam_params.json: the standard Replica camera")
     K = np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])
     hw = (int(round(cam["h"])), int(round(cam["w"])))
     records = []
@@ -332,7 +352,7 @@ def load_replica(root: str | os.PathLike) -> FrameSequence:
         return f
 
     return FrameSequence(loader=load_frame, count=len(records), classes=[], root=str(root), layout="replica",
-                         names=[r[3] for r in records])
+                         names=[r[3] for r in records], report=report)
 
 
 # The layouts `load` detects, tried in this order (adding one: a reader and a line here,
@@ -343,5 +363,8 @@ LAYOUTS: list[Layout] = [
     Layout("scannet", lambda p: all((p / d).is_dir() for d in ("color", "depth", "pose")),
            lambda p: load_scannet(p), "ScanNet color/ depth/ pose/"),
     Layout("replica", lambda p: (p / "traj.txt").is_file() and (p / "results").is_dir(),
-           lambda p: load_replica(p), "or Replica results/ + traj.txt"),
+           lambda p: load_replica(p), "Replica results/ + traj.txt"),
+    # After the layouts above: a TUM or BOP folder has none of their files, and they win on theirs.
+    Layout("tum", is_tum, lambda p: load_tum(p), "TUM RGB-D rgb.txt + depth.txt"),
+    Layout("bop", is_bop, lambda p: load_bop(p), "or BOP scene_camera.json"),
 ]

@@ -24,6 +24,7 @@ import numpy as np
 from psimap import PsimapError
 from psimap.data.frames import ClassInfo, Frame, FrameSequence
 from psimap.io_utils import atomic_dir, atomic_path, check_output_dir
+from psimap.transforms import PIXEL_CENTER
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -47,6 +48,20 @@ def _open_image(path: Path):
     except (UnidentifiedImageError, OSError, ValueError) as e:
         raise PsimapError(f"cannot read image {path}: {e}") from None
     return img
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(W, H) of an image from its header only (cheap: for reports and checks before loading)."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise PsimapError(f"missing file: {path}")
+    try:
+        with Image.open(path) as img:
+            return img.size
+    except (UnidentifiedImageError, OSError) as e:
+        raise PsimapError(f"cannot read image {path}: {e}") from None
 
 
 def read_rgb(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
@@ -103,12 +118,6 @@ def _write_png(path: Path, arr: np.ndarray) -> None:
 
     # Low zlib level: writing speed matters to the synthetic generator, size barely changes.
     Image.fromarray(arr).save(path, format="PNG", compress_level=1)
-
-
-def _check_size(path, arr: np.ndarray, hw: tuple[int, int], what: str) -> None:
-    if tuple(arr.shape[:2]) != tuple(hw):
-        raise PsimapError(f"{what} {path} is {arr.shape[1]}x{arr.shape[0]} but the depth/camera size is "
-                          f"{hw[1]}x{hw[0]}")
 
 
 def check_pose(c2w: np.ndarray, source: str) -> np.ndarray:
@@ -489,12 +498,41 @@ def _json_plain(v):
 # reader
 
 
+# Pinhole camera models (COLMAP names, as nerfstudio writes them) psimap reads; the others
+# (OPENCV_FISHEYE, FISHEYE624, EQUIRECTANGULAR, VR180_*, ...) need reprojecting first.
+PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+# Lens distortion that moves no pixel further than this is ignored; more is undistorted.
+MAX_IGNORED_DISTORTION_PX = 0.5
+# Colour and depth at different resolutions must show the same view: aspect ratios within 1 %.
+_ASPECT_TOLERANCE = 0.01
+
+
+def _resized_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """K [3, 3] of the same view resampled by sx, sy (pixel edges scale, centres do not)."""
+    K = np.array(K, np.float64)
+    K[0, 0], K[1, 1] = K[0, 0] * sx, K[1, 1] * sy
+    K[0, 2] = (K[0, 2] + 0.5 - PIXEL_CENTER) * sx - 0.5 + PIXEL_CENTER
+    K[1, 2] = (K[1, 2] + 0.5 - PIXEL_CENTER) * sy - 0.5 + PIXEL_CENTER
+    return K
+
+
 def read_scene(root: str | os.PathLike) -> FrameSequence:
     """Open a scene folder (or its transforms.json) as a lazily loaded FrameSequence.
 
     transforms.json, poses and file existence are checked up front (cheap); images are read when a
     frame is accessed. Poses are converted OpenGL -> OpenCV.
+
+    The same reader opens nerfstudio's processed folders (`ns-process-data`: Record3D, Polycam,
+    KIRI, Metashape, COLMAP with depth): a transforms.json without psimap's `classes` key is read
+    as nerfstudio writes it (layout "nerfstudio"): pixel centres at +0.5 (so cx, cy move by -0.5),
+    depth in millimetres unless `depth_unit_scale_factor` says otherwise. In both, depth at another
+    resolution than the colour (a phone's 256x192 depth beside 1920x1440 colour) sets the frame
+    size: colour and K are resampled to it; lens distortion above MAX_IGNORED_DISTORTION_PX is
+    undistorted, below it ignored; non-pinhole camera models are refused.
     """
+    from psimap.data.frames import LoadReport
+    from psimap.data.lens import COEFFS, max_displacement
+
     root = Path(root)
     tf_path = root if root.is_file() else root / TRANSFORMS
     root = tf_path.parent
@@ -506,35 +544,51 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
         raise PsimapError(f"{tf_path} is not valid JSON: {e}") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
         raise PsimapError(f"{tf_path} has no 'frames' list (not a nerfstudio transforms.json)")
+    layout = "psimap" if "classes" in meta else "nerfstudio"
     model = meta.get("camera_model", "OPENCV")
-    if model not in ("OPENCV", "PINHOLE"):
-        raise PsimapError(f"{tf_path}: camera_model {model!r} is not supported (OPENCV / PINHOLE only)")
-    if any(abs(float(meta.get(k, 0.0) or 0.0)) > 1e-9 for k in ("k1", "k2", "k3", "k4", "p1", "p2")):
-        warnings.warn(f"{tf_path}: lens distortion coefficients are ignored (images assumed undistorted)",
-                      stacklevel=2)
-    scale = float(meta.get("depth_unit_scale_factor", 0.001))
+    if model not in PINHOLE_MODELS:
+        raise PsimapError(f"{tf_path}: camera_model {model!r} is not a pinhole camera (psimap reads "
+                          f"{', '.join(PINHOLE_MODELS)}; reproject fisheye / panoramic images first)")
+    report = LoadReport(poses="transform_matrix: camera-to-world, OpenGL camera axes (converted to OpenCV)")
+    try:
+        scale = float(meta.get("depth_unit_scale_factor", 0.001))
+    except (TypeError, ValueError):
+        scale = float("nan")
     if not (scale > 0 and math.isfinite(scale)):
-        raise PsimapError(f"{tf_path}: depth_unit_scale_factor must be > 0, got {scale}")
+        raise PsimapError(f"{tf_path}: depth_unit_scale_factor must be > 0, got {meta.get('depth_unit_scale_factor')}")
+    if "depth_unit_scale_factor" not in meta:
+        report.assumed.append("no depth_unit_scale_factor: depth PNGs in millimetres (nerfstudio's default 0.001)")
+    # nerfstudio casts a pixel's ray through its centre at index + 0.5; psimap's is PIXEL_CENTER.
+    half = 0.5 - PIXEL_CENTER if layout == "nerfstudio" else 0.0
     try:
         classes = [ClassInfo(int(c["id"]), str(c["name"]), bool(c.get("isthing", True)))
                    for c in meta.get("classes", [])]
     except (KeyError, TypeError, ValueError):
         raise PsimapError(f"{tf_path}: 'classes' entries need 'id' and 'name'") from None
 
-    records = []
+    records, displacement, masked = [], {}, 0
     for i, fr in enumerate(meta["frames"]):
         src = f"{tf_path} frame {i}"
+        if not isinstance(fr, dict):
+            raise PsimapError(f"{src}: expected an object with file_path, depth_file_path, transform_matrix")
+        if ("file_path" in fr and "transform_matrix" in fr and not fr.get("depth_file_path")
+                and not fr.get("lidar_file_path")):
+            raise PsimapError(f"{src} has no depth_file_path (nor a lidar_file_path): psimap trains on RGB-D "
+                              f"frames or colour + LiDAR (a capture without depth, e.g. plain COLMAP, cannot be used)")
         try:
             fl_x = float(fr.get("fl_x", meta.get("fl_x")))
             fl_y = float(fr.get("fl_y", meta.get("fl_y", fl_x)))
-            cx, cy = float(fr.get("cx", meta.get("cx"))), float(fr.get("cy", meta.get("cy")))
-            w, h = int(fr.get("w", meta.get("w"))), int(fr.get("h", meta.get("h")))
+            cx = float(fr.get("cx", meta.get("cx"))) - half
+            cy = float(fr.get("cy", meta.get("cy"))) - half
             file_path = fr["file_path"]
             # a LiDAR + colour capture may have no depth images (psimap.train uses the sweeps)
             depth_path = fr["depth_file_path"] if not fr.get("lidar_file_path") else fr.get("depth_file_path")
             origin = fr.get("lidar_origin")
             origin = None if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
             c2w_gl = np.asarray(fr["transform_matrix"], dtype=np.float64)
+            w, h = fr.get("w", meta.get("w")), fr.get("h", meta.get("h"))
+            w, h = image_size(root / file_path) if w is None or h is None else (int(w), int(h))
+            coeffs = {k: float(fr.get(k, meta.get(k, 0.0)) or 0.0) for k in COEFFS}
         except (KeyError, TypeError, ValueError):
             raise PsimapError(f"{src}: needs file_path, depth_file_path (or lidar_file_path), transform_matrix "
                               f"and intrinsics (fl_x, fl_y, cx, cy, w, h); lidar_origin, if given, 3 numbers") from None
@@ -545,14 +599,24 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
         K = np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
         if not np.all(np.isfinite(K)) or fl_x <= 0 or fl_y <= 0 or w <= 0 or h <= 0:
             raise PsimapError(f"{src}: invalid intrinsics")
+        if not all(math.isfinite(v) for v in coeffs.values()):
+            raise PsimapError(f"{src}: non-finite distortion coefficients")
+        key = (fl_x, fl_y, cx, cy, w, h, *coeffs.values())
+        if key not in displacement:
+            displacement[key] = max_displacement(K, (h, w), coeffs) if any(coeffs.values()) else 0.0
+        lens = coeffs if displacement[key] > MAX_IGNORED_DISTORTION_PX else None
         c2w = check_pose(c2w_gl, f"{src} ({file_path})") @ GL_TO_CV
         paths = {"rgb": root / file_path}
         if depth_path:
             paths["depth"] = root / depth_path
+            if Path(depth_path).suffix.lower() not in (".png", ".tif", ".tiff"):
+                raise PsimapError(f"{src}: depth {depth_path} must be a 16-bit PNG (or TIFF); convert other "
+                                  f"depth files to millimetre PNGs")
         for key, meta_key in (("semantic", "semantic_file_path"), ("instance", "instance_file_path"),
                               ("lidar", "lidar_file_path")):
             if fr.get(meta_key):
                 paths[key] = root / fr[meta_key]
+        masked += bool(fr.get("mask_path"))
         stem = Path(file_path).stem
         for key in ("semantic", "instance"):
             p = root / "gt" / key / f"{stem}.png"
@@ -561,28 +625,74 @@ def read_scene(root: str | os.PathLike) -> FrameSequence:
         for p in paths.values():
             if not p.is_file():
                 raise PsimapError(f"missing file: {p} (listed in {tf_path})")
-        records.append((paths, K, c2w, (h, w), stem, origin))
+        records.append((paths, K, c2w, (h, w), stem, lens, origin))
+
+    h0, w0 = records[0][3]
+    first_depth = next((r[0]["depth"] for r in records if "depth" in r[0]), None)
+    dw, dh = (w0, h0) if first_depth is None else image_size(first_depth)
+    report.resolution = (dw, dh)
+    report.depth = f"16-bit PNG x {scale:g} m (0 invalid)"
+    n_nodepth = sum("depth" not in r[0] for r in records)
+    if n_nodepth:
+        report.depth += f"; {n_nodepth} of {len(records)} frames have no depth image (colour + LiDAR)"
+    if (dw, dh) != (w0, h0):
+        report.depth += f"; colour {w0}x{h0} resampled to the depth size {dw}x{dh} (K scaled with it)"
+    report.intrinsics = f"{TRANSFORMS} fl_x, fl_y, cx, cy (camera_model {model})"
+    if half:
+        report.intrinsics += "; cx, cy - 0.5 (nerfstudio puts pixel centres at +0.5)"
+    worst = max(displacement.values())
+    if any(r[5] is not None for r in records):
+        report.assumed.append(f"lens distortion moves pixels up to {worst:.1f} px: images undistorted "
+                              f"(same K, pinhole)")
+    elif worst > 0:
+        report.assumed.append(f"lens distortion moves pixels at most {worst:.2f} px "
+                              f"(<= {MAX_IGNORED_DISTORTION_PX} px): ignored")
+    if "applied_transform" in meta:
+        report.poses += "; world as written (applied_transform already in the poses)"
+    if layout == "nerfstudio":
+        report.assumed.append("world frame as written (often Y-up): gravity is found at export (--up auto)")
+    if masked:
+        report.assumed.append(f"mask_path of {masked} frames ignored (every pixel is used)")
+    n_sem = sum("semantic" in r[0] for r in records)
+    n_ins = sum("instance" in r[0] for r in records)
+    report.labels = (f"semantic_file_path on {n_sem}, instance_file_path on {n_ins} of {len(records)} frames, "
+                     f"{len(classes)} classes" if n_sem or n_ins else "none")
 
     def load_frame(i: int) -> Frame:
-        paths, K, c2w, hw, stem, origin = records[i]
-        if "depth" in paths:
-            depth = read_depth_png(paths["depth"], scale)
-            _check_size(paths["depth"], depth, hw, "depth image")
-        else:
-            depth = np.zeros(hw, np.float32)
-        rgb = read_rgb(paths["rgb"])
-        _check_size(paths["rgb"], rgb, hw, "colour image")
+        from psimap.data.lens import undistort
+
+        paths, K, c2w, (h, w), stem, lens, origin = records[i]
+        # a colour + LiDAR frame has no depth image: all invalid, at the colour size
+        depth = read_depth_png(paths["depth"], scale) if "depth" in paths else np.zeros((h, w), np.float32)
+        fh, fw = depth.shape
+        if (fh, fw) != (h, w):
+            if abs((fw / fh) / (w / h) - 1.0) > _ASPECT_TOLERANCE:
+                raise PsimapError(f"depth image {paths['depth']} is {fw}x{fh} but the colour camera is {w}x{h} "
+                                  f"(different aspect ratios: not the same view)")
+            K = _resized_intrinsics(K, fw / w, fh / h)
+        rgb_size = image_size(paths["rgb"])
+        if rgb_size != (w, h):
+            raise PsimapError(f"colour image {paths['rgb']} is {rgb_size[0]}x{rgb_size[1]} but the camera "
+                              f"({TRANSFORMS} w, h) is {w}x{h}")
+        rgb = read_rgb(paths["rgb"], size=(fw, fh))
         labels = {}
         for key in ("semantic", "instance", "gt_semantic", "gt_instance"):
             if key in paths:
-                labels[key] = read_label_png(paths[key])
-                _check_size(paths[key], labels[key], hw, f"{key} image")
+                lw, lh = image_size(paths[key])
+                if (lw, lh) not in ((fw, fh), (w, h)):
+                    raise PsimapError(f"{key} image {paths[key]} is {lw}x{lh} but the frame is {fw}x{fh} "
+                                      f"(colour {w}x{h})")
+                labels[key] = read_label_png(paths[key], size=(fw, fh))
+        if lens is not None:
+            rgb = undistort(rgb, K, lens, order=1)
+            depth = undistort(depth, K, lens, order=0)
+            labels = {k: undistort(v, K, lens, order=0) for k, v in labels.items()}
         lidar = read_lidar(paths["lidar"]) if "lidar" in paths else None
         return Frame(rgb=rgb, depth=depth, K=K.copy(), c2w=c2w.copy(), lidar=lidar, name=stem,
                      lidar_origin=None if origin is None else origin.copy(), **labels)
 
     return FrameSequence(loader=load_frame, count=len(records), classes=classes, root=str(root),
-                         layout="psimap", names=[r[4] for r in records])
+                         layout=layout, names=[r[4] for r in records], report=report)
 
 
 def read_lidar(path: str | os.PathLike) -> np.ndarray:

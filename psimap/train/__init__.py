@@ -42,7 +42,16 @@ def cli_train(opts) -> int:
         cfg.deterministic = False
     if getattr(opts, "no_lidar", False):
         cfg.lidar = False
-    scene = train(opts.data, cfg, resume=opts.resume or None)
+    import sys
+
+    from psimap.data import load
+
+    # Say how the capture was understood (layout, frames, depth scale, poses, what was assumed)
+    # before minutes of training on it.
+    seq = load(opts.data)
+    print(seq.describe(), file=sys.stderr)
+    seq.root = str(opts.data)           # the checkpoint records the data path as typed, as before
+    scene = train(seq, cfg, resume=opts.resume or None)
     save_checkpoint(opts.out, scene.state(), overwrite=opts.overwrite)
     print(f"wrote {opts.out}: {len(scene)} surfels, {scene.metrics['steps']} steps, "
           f"{scene.metrics['seconds']:.1f} s")
