@@ -112,7 +112,8 @@ def test_coco_panoptic_round_trip_with_mapping(capture, tmp_path):
     s = import_masks(capture, js, classes=tmp_path / "map.json", min_area=0)
     assert s["format"] == "coco-panoptic" and s["labelled"] == 2 and s["without_masks"] == ["frame-000002"]
     # the person is mapped to null: no class, its pixels void; the rest renamed
-    assert [(n, t) for _, n, t in s["classes"]] == [("cup", True), ("table", True), ("floor", False)]
+    # a class keeps its source id: COCO's ids survive the mapping
+    assert s["classes"] == [(47, "cup", True), (67, "table", True), (190, "floor", False)]
     for i, (cat, seg) in enumerate(frames.values()):
         f, seq = _check_import(capture, i, cat, seg)
         assert f.semantic[3, 6] == 0 and f.instance[3, 6] == 0          # the person: void
@@ -398,6 +399,21 @@ def test_class_mapping_rules_and_errors(capture, tmp_path):
     mp.write_text(json.dumps({"classes": {"cup": 3}}))
     with pytest.raises(PsimapError, match="expected a class name"):
         import_masks(capture, js, classes=mp, force=True)
+
+
+def test_class_ids_keep_the_source_ids_unless_zero_based():
+    from psimap.data.masks_import import build_classes
+
+    cats = {3: ("cup", True), 9: ("bowl", True), 12: ("wall", False), 20: ("mug", True)}
+    classes, to_class, _ = build_classes(cats, {3, 9, 12, 20}, {"mug": ("cup", None)}, "keep")
+    assert [(c.id, c.name, c.isthing) for c in classes] == [(3, "cup", True), (9, "bowl", True), (12, "wall", False)]
+    assert to_class == {3: 3, 9: 9, 12: 12, 20: 3}
+    classes, to_class, _ = build_classes(cats, {3, 9, 12}, None, "object")
+    assert [(c.id, c.name) for c in classes] == [(3, "object")] and to_class == {3: 3, 9: 3, 12: 0}
+    # 0-based source ids (0 would be void): renumbered 1.. in source order; void stays void
+    cats0 = {0: ("cat", True), 5: ("dog", True), 7: ("grass", False)}
+    classes, to_class, _ = build_classes(cats0, {0, 5, 7}, {"7": None}, "keep")
+    assert [(c.id, c.name) for c in classes] == [(1, "cat"), (2, "dog")] and to_class == {0: 1, 5: 2, 7: 0}
 
 
 def test_cli_error_is_one_line_and_exit_1(capture, tmp_path):

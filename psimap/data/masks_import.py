@@ -510,29 +510,28 @@ def read_class_map(path: str | os.PathLike) -> tuple[dict, str | None]:
 def build_classes(categories: dict[int, tuple[str, bool]], used: set[int], mapping: dict | None,
                   unmapped: str) -> tuple[list[ClassInfo], dict[int, int], list[str]]:
     """(psimap class table, {source category id: psimap class id, 0 = void}, mapping keys that name
-    no source category). Only the categories some mask uses become classes, numbered 1.. in the
-    order of their source ids; several source categories may map to one class."""
+    no source category). Only the categories some mask uses become classes; several source
+    categories may map to one class. A class keeps its source id (the smallest of those mapped onto
+    it), so COCO ids and a generated scene's ids survive; when one is outside 1..65535 (0-based ids)
+    the classes are numbered 1, 2, ... in the order of their source ids instead."""
     mapping = mapping or {}
-    targets: dict[str, tuple[int, bool, str]] = {}       # name -> (id, isthing, source it came from)
-    to_class = {}
+    targets: dict[str, tuple[int, bool, str]] = {}       # name -> (smallest source id, isthing, its name)
+    target_of: dict[int, str | None] = {}                # source id -> class name, None = void
     for cid in sorted(used):
         name, isthing = categories[cid]
         key = name if name in mapping else str(cid) if str(cid) in mapping else None
         if key is not None:
             if mapping[key] is None:
-                to_class[cid] = 0
+                target_of[cid] = None
                 continue
             target, thing = mapping[key]
             thing = isthing if thing is None else thing
         elif unmapped == "keep":
             target, thing = name, isthing
-        elif unmapped == "object":
-            if not isthing:
-                to_class[cid] = 0
-                continue
+        elif unmapped == "object" and isthing:
             target, thing = SAM_CLASS, True
-        elif unmapped == "void":
-            to_class[cid] = 0
+        elif unmapped in ("object", "void"):             # "object" leaves stuff void
+            target_of[cid] = None
             continue
         else:
             raise PsimapError(f"source category {name!r} (id {cid}) is not in the class mapping "
@@ -541,10 +540,13 @@ def build_classes(categories: dict[int, tuple[str, bool]], used: set[int], mappi
             raise PsimapError(f"class {target!r} is a {'thing' if targets[target][1] else 'stuff'} class for "
                               f"{targets[target][2]!r} and a {'thing' if thing else 'stuff'} class for {name!r}: "
                               f"give it as {{\"name\": {json.dumps(target)}, \"isthing\": true|false}}")
-        if target not in targets:
-            targets[target] = (len(targets) + 1, thing, name)
-        to_class[cid] = targets[target][0]
-    classes = [ClassInfo(i, n, t) for n, (i, t, _) in targets.items()]
+        targets.setdefault(target, (cid, thing, name))    # `used` is sorted: the smallest source id
+        target_of[cid] = target
+    ids = {n: i for n, (i, _, _) in targets.items()}
+    if any(not 0 < i <= 65535 for i in ids.values()):
+        ids = {n: k + 1 for k, n in enumerate(targets)}
+    classes = [ClassInfo(ids[n], n, t) for n, (_, t, _) in targets.items()]
+    to_class = {cid: 0 if t is None else ids[t] for cid, t in target_of.items()}
     known = {n for n, _ in categories.values()} | {str(c) for c in categories}
     return classes, to_class, sorted(k for k in mapping if k not in known)
 
