@@ -17,7 +17,7 @@ from psimap import PsimapError
 from psimap.data import load
 from psimap.data.masks_import import (decode_segmentation, import_masks, match_frame, min_area_pixels,
                                       paint_masks)
-from test_loaders import H, W, _seven_scenes
+from test_loaders import CHESS, H, W, _seven_scenes
 
 pytest.importorskip("pycocotools")
 from pycocotools import mask as cocomask  # noqa: E402
@@ -414,6 +414,37 @@ def test_class_ids_keep_the_source_ids_unless_zero_based():
     cats0 = {0: ("cat", True), 5: ("dog", True), 7: ("grass", False)}
     classes, to_class, _ = build_classes(cats0, {0, 5, 7}, {"7": None}, "keep")
     assert [(c.id, c.name) for c in classes] == [(1, "cat"), (2, "dog")] and to_class == {0: 1, 5: 2, 7: 0}
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not CHESS.is_dir(), reason="shared 7-Scenes frames not present")
+def test_sam_masks_on_real_7scenes_frames(tmp_path):
+    """Two real 640x480 chess frames (copied: ../shared is never written), SAM amg.py folders named as
+    it names them (`frame-000001.color`), masks cut from the real depth: near / mid / far bands,
+    and a small one nested in the far band with a lower score."""
+    import shutil
+
+    root = tmp_path / "chess"
+    root.mkdir()
+    for name in ["camera-intrinsics.txt"] + [f"frame-00000{i}.{k}" for i in (0, 1)
+                                             for k in ("color.jpg", "depth.png", "pose.txt")]:
+        shutil.copy(CHESS / name, root / name)
+    depth = load(root)[1].depth
+    valid = depth > 0
+    q1, q2 = np.quantile(depth[valid], [0.33, 0.66])
+    bands = [valid & (depth < q1), valid & (depth >= q1) & (depth < q2), valid & (depth >= q2)]
+    ys, xs = np.nonzero(bands[2])
+    nested = np.zeros_like(valid)
+    nested[ys[0]:ys[0] + 40, :][:, xs.min():xs.min() + 40] = True
+    nested &= bands[2]
+    _sam_folder(tmp_path / "amg" / "frame-000001.color", bands + [nested], [(0.99, 0.99)] * 3 + [(0.9, 0.9)])
+    s = import_masks(root, tmp_path / "amg")
+    assert s["labelled"] == 1 and s["without_masks"] == ["frame-000000"] and s["kept"] == 4
+    f = load(root)[1]
+    assert f.instance.shape == (480, 640) and np.array_equal(f.semantic > 0, valid)
+    ids = [int(np.unique(f.instance[m & ~nested])[0]) for m in bands] + [int(np.unique(f.instance[nested])[0])]
+    assert len(set(ids)) == 4 and ids[3] < ids[2]      # the nested mask above the far band (ids: top first)
+    assert all(len(np.unique(f.instance[m & ~nested])) == 1 for m in bands)
 
 
 def test_cli_error_is_one_line_and_exit_1(capture, tmp_path):
