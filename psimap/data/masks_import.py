@@ -289,7 +289,9 @@ def read_coco_panoptic(path: Path) -> MaskSource:
                     out.append(SourceMask(inverse == k, s.category, s.score, s.iscrowd))
             return out
 
-        source.images.append(SourceImage(image_names.get(ann.get("image_id"), ann["file_name"]), str(png), read))
+        image_id = ann.get("image_id")
+        key = image_names.get(image_id, ann["file_name"]) if isinstance(image_id, (int, str)) else ann["file_name"]
+        source.images.append(SourceImage(str(key), str(png), read))
     return source
 
 
@@ -325,7 +327,7 @@ def read_coco_instances(path: Path, images: Path | None = None, min_score: float
         where = f"{path} annotation {n}"
         if not isinstance(ann, dict) or "segmentation" not in ann or "image_id" not in ann:
             raise PsimapError(f"{where}: needs \"image_id\", \"category_id\" and \"segmentation\"")
-        if ann["image_id"] not in entries:
+        if not isinstance(ann["image_id"], (int, str)) or ann["image_id"] not in entries:
             raise PsimapError(f"{where}: image_id {ann['image_id']!r} is not in {meta_path}'s \"images\"")
         try:
             cid = int(ann["category_id"])
@@ -699,6 +701,8 @@ def import_masks(data: str | os.PathLike, masks: str | os.PathLike, *, fmt: str 
     seq = next(lay for lay in LAYOUTS if lay.name == layout).read(root)
     names = list(seq.names) or [seq[i].name for i in range(len(seq))]
     source = read_masks(masks, fmt, images=images, min_score=min_score)
+    if not source.images:
+        raise PsimapError(f"{source.path}: no images in it")
     mapping, file_rule = read_class_map(classes) if classes else (None, None)
     rule = unmapped or file_rule or "keep"
 
