@@ -690,8 +690,7 @@ def import_masks(data: str | os.PathLike, masks: str | os.PathLike, *, fmt: str 
     root = Path(data)
     if not root.is_dir():
         raise PsimapError(f"no such capture folder: {root}")
-    if min_area < 0 or not np.isfinite(min_area):
-        raise PsimapError(f"--min-area must be >= 0, got {min_area}")
+    min_area_pixels(min_area, (1, 1))               # refuses a negative or NaN --min-area up front
     if not 0.0 <= min_score <= 1.0:
         raise PsimapError(f"--min-score must be in 0..1, got {min_score}")
     if unmapped is not None and unmapped not in UNMAPPED_RULES:
