@@ -140,3 +140,26 @@ class LabelsOptions:
                        "Top-K curve); 0 = all")
     overwrite: bool = overwrite_opt("folder")
 
+
+
+@dataclass
+class ImportMasksOptions:
+    data: str = pos("capture folder (any layout psimap reads) to add per-frame labels to (labels.json)")
+    masks: str = opt("", "the segmenter's output: a COCO panoptic or instances JSON (or the folder holding it), "
+                         "a SAM amg.py output folder, or SAM JSON lists (docs/scene-format.md)", required=True)
+    format: str = opt("auto", "mask format (auto: from what --masks holds)",
+                      choices=["auto", "coco-panoptic", "coco-instances", "sam"])
+    classes: str = opt("", "class mapping JSON: {\"classes\": {source name or id: class name | "
+                           "{\"name\", \"isthing\"} | null}, \"unmapped\": rule}")
+    unmapped: str = opt("", "rule for categories the mapping does not name: keep (their own name), object "
+                            "(things -> object, stuff -> void), void, error (default: the mapping file's, "
+                            "else keep)", choices=["", "keep", "object", "void", "error"])
+    images: str = opt("", "COCO JSON whose images[] and categories a COCO results list (no images of its "
+                          "own) refers to")
+    min_area: float = opt(0.0005, "drop masks (and what is left visible of them) under this many pixels; "
+                                  "below 1: a share of the image")
+    min_score: float = opt(0.5, "drop masks whose score (detection score, or SAM predicted_iou x "
+                                "stability_score) is below this; masks without a score count as 1")
+    resize: bool = opt(False, "resize masks of another size than the frame to it (nearest neighbour; same "
+                              "aspect ratio), e.g. masks of ScanNet's colour images")
+    force: bool = opt(False, "replace labels the capture already has (labels.json, semantic/, instance/)")

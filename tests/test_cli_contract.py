@@ -33,6 +33,10 @@ CALLS1 = {
     "demo": ["demo", "--out", "{tmp}/demo", "--seed", "1", "--frames", "8", "--width", "64", "--height", "48",
              "--iters", "100", "--panoptic-iters", "20"],
     "bad_format": ["export", "{tmp}/none.ckpt", "--format", "fbx"],
+    # a tiny 7-Scenes capture and a COCO panoptic file the fixture writes (tests/test_import_masks.py)
+    "import_masks": ["import-masks", "{tmp}/chess", "--masks", "{tmp}/m2f/panoptic_val.json", "--format",
+                     "coco-panoptic", "--classes", "{tmp}/map.json", "--unmapped", "void", "--min-area", "2",
+                     "--min-score", "0.5", "--resize", "--force"],
 }
 CALLS2 = {
     # resumed from the demo on a copy of its scene without pseudo-labels (no 400-step panoptic phase)
@@ -54,7 +58,8 @@ CALLS2 = {
 }
 DENSITY = {"cabinet": 321.0}
 # Options a dedicated test file exercises through the console script instead (flag -> where).
-ELSEWHERE = {"overwrite": "tests/test_output_safety.py", "objects": "tests/test_metrics_objects.py"}
+ELSEWHERE = {"overwrite": "tests/test_output_safety.py", "objects": "tests/test_metrics_objects.py",
+             "images": "tests/test_import_masks.py"}
 
 
 def _run(argv, tmp: Path) -> subprocess.CompletedProcess:
@@ -69,6 +74,7 @@ def ran(tmp_path_factory) -> tuple[dict, Path]:
     tmp = tmp_path_factory.mktemp("cli")
     (tmp / "bad.ckpt").write_bytes(b"PK\x03\x04 truncated")
     (tmp / "densities.json").write_text(json.dumps(DENSITY))
+    _masks_input(tmp)
     res = {}
     with ThreadPoolExecutor(2) as pool:
         res.update(zip(CALLS1, pool.map(lambda a: _run(a, tmp), CALLS1.values())))
@@ -88,6 +94,14 @@ def _strip_labels(src: Path, dst: Path) -> None:
         f.pop("semantic_file_path", None)
         f.pop("instance_file_path", None)
     (dst / "transforms.json").write_text(json.dumps(meta))
+
+
+def _masks_input(tmp: Path) -> None:
+    from test_import_masks import MAPPING, _panoptic, _scene, _seven_scenes
+
+    _seven_scenes(tmp / "chess", n=3)
+    _panoptic(tmp / "m2f", {"frame-000000": _scene(0), "frame-000001": _scene(1)})
+    (tmp / "map.json").write_text(json.dumps(MAPPING))
 
 
 def ok(res, name) -> subprocess.CompletedProcess:
@@ -241,3 +255,12 @@ def test_errors_are_one_line_and_debug_shows_the_traceback(ran):
     assert r.returncode == 1 and "Traceback (most recent call last)" in r.stderr
     assert "psimap.PsimapError: " in r.stderr and "truncated or corrupt checkpoint" in r.stderr
     assert not (tmp / "bad.ply").exists() and not (tmp / "e_bad").exists()
+
+
+def test_import_masks_options(ran):
+    res, tmp = ran
+    out = ok(res, "import_masks").stdout
+    assert "2 of 3 frames labelled; 1 without masks (no labels): frame-000002" in out
+    assert "classes: table (thing), floor (stuff)" in out          # cups unmapped -> void, person -> null
+    meta = json.loads((tmp / "chess" / "labels.json").read_text())
+    assert sorted(meta["frames"]) == ["frame-000000", "frame-000001"]
