@@ -2,7 +2,9 @@
 generated scenes with a simulated spinning LiDAR (16 rings from -25 to +15 degrees, 0.5 degree azimuth
 step, 1 cm range noise, a sweep every 10 frames from the camera), plus the shared real KITTI sweep
 through the prior's input path. Geometry F1@5cm / Chamfer of the trained map's mesh against the exact
-ground truth, beside training time, in one run. Section `lidar` of benchmarks/RESULTS.md.
+ground truth, beside training time, in one run, with the default depth sensor and with one 3x as
+noisy (where a depth camera is poor, LiDAR should matter more; the colour + LiDAR run does not depend
+on the depth sensor and runs once). Section `lidar` of benchmarks/RESULTS.md.
 
     python benchmarks/lidar.py                    # 160x120, 60 frames, seeds 0 and 1
     python benchmarks/lidar.py --quick            # one seed, 30 frames, fewer steps; prints only
@@ -37,7 +39,7 @@ def without_depth(seq):
     return dataclasses.replace(seq, loader=load)
 
 
-def run_mode(mode: str, data: Path, iters: int, seed: int) -> dict:
+def run_mode(mode: str, data: Path, iters: int, seed: int, sensor: str) -> dict:
     from psimap.data import load
     from psimap.metrics.evaluate import evaluate_geometry
     from psimap.train.config import TrainConfig
@@ -53,7 +55,7 @@ def run_mode(mode: str, data: Path, iters: int, seed: int) -> dict:
     mesh = scene.mesh()
     m = evaluate_geometry(mesh, data, samples=100_000) if len(mesh.faces) else None
     rng = scene.metrics.get("range_l1_end")
-    return {"mode": mode, "seed": seed, "F1@5cm": None if m is None else m["f1"],
+    return {"sensor": sensor, "mode": mode, "seed": seed, "F1@5cm": None if m is None else m["f1"],
             "Chamfer-L1 (cm)": None if m is None else m["chamfer_l1"] * 100,
             "accuracy (cm)": None if m is None else m["accuracy"] * 100,
             "completeness (cm)": None if m is None else m["completeness"] * 100,
@@ -90,22 +92,31 @@ def main(argv=None) -> int:
     if args.quick:
         args.seeds, args.frames, args.iters = args.seeds[:1], 30, 150
     from psimap.data.synthetic import generate
+    from psimap.data.synthetic_noise import DepthNoise
 
     rows = []
+    sensors = {"default depth": True, "depth noise x3": DepthNoise.degraded(3.0)}
     for seed in args.seeds:
-        data = OUT / f"room_s{seed}_{args.frames}"
-        generate(data, seed=seed, frames=args.frames, lidar=True, progress=False, overwrite=True)
-        for mode in MODES:
-            print(f"== seed {seed}: {mode}", flush=True)
-            rows.append(run_mode(mode, data, args.iters, seed))
-            print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()}, flush=True)
-    table = markdown_table(["mode", "seed", *COLS], [[r["mode"], r["seed"]] + ["-" if r[c] is None else r[c]
-                                                                            for c in COLS] for r in rows])
+        for sensor, model in sensors.items():
+            data = OUT / f"room_s{seed}_{args.frames}_{sensor.split()[-1]}"
+            generate(data, seed=seed, frames=args.frames, lidar=True, depth_noise=model, progress=False,
+                     overwrite=True)
+            for mode in MODES:
+                if mode == MODES[2] and sensor != "default depth":
+                    continue                # no depth images: the depth sensor does not matter
+                print(f"== seed {seed}, {sensor}: {mode}", flush=True)
+                rows.append(run_mode(mode, data, args.iters, seed, sensor))
+                print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()}, flush=True)
+    table = markdown_table(["sensor", "mode", "seed", *COLS],
+                           [[r["sensor"], r["mode"], r["seed"]] + ["-" if r[c] is None else r[c] for c in COLS]
+                            for r in rows])
+    groups = list(dict.fromkeys((r["sensor"], r["mode"]) for r in rows))
     means = {}
-    for mode in MODES:
-        rs = [r for r in rows if r["mode"] == mode]
-        means[mode] = {c: float(np.mean([r[c] for r in rs if r[c] is not None] or [np.nan])) for c in COLS}
-    mean_table = markdown_table(["mode (mean over seeds)", *COLS], [[m] + [means[m][c] for c in COLS] for m in MODES])
+    for g in groups:
+        rs = [r for r in rows if (r["sensor"], r["mode"]) == g]
+        means[g] = {c: float(np.mean([r[c] for r in rs if r[c] is not None] or [np.nan])) for c in COLS}
+    mean_table = markdown_table(["sensor", "mode (mean over seeds)", *COLS],
+                                [[*g] + [means[g][c] for c in COLS] for g in groups])
     kitti = kitti_row()
     kitti_table = "" if kitti is None else "\n\nReal KITTI sweep through the prior's input path (range noise " \
         "estimated from the sweep, virtual views, SOGMM fit at a 5 cm voxel):\n\n" + markdown_table(
@@ -119,20 +130,25 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
-    for mode, c in zip(MODES, ("tab:blue", "tab:orange", "tab:green")):
-        rs = [r for r in rows if r["mode"] == mode and r["F1@5cm"] is not None]
-        axes[0].scatter([r["train (s)"] for r in rs], [r["F1@5cm"] for r in rs], color=c, label=mode)
-        axes[1].scatter([r["train (s)"] for r in rs], [r["Chamfer-L1 (cm)"] for r in rs], color=c, label=mode)
+    for g, c in zip(groups, ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:red")):
+        rs = [r for r in rows if (r["sensor"], r["mode"]) == g and r["F1@5cm"] is not None]
+        marker = "o" if g[0] == "default depth" else "^"
+        label = g[1] if g[1] == MODES[2] else f"{g[1]}, {g[0]}"
+        axes[0].scatter([r["train (s)"] for r in rs], [r["F1@5cm"] for r in rs], color=c, marker=marker, label=label)
+        axes[1].scatter([r["train (s)"] for r in rs], [r["Chamfer-L1 (cm)"] for r in rs], color=c, marker=marker)
     axes[0].set(xlabel="train time (s)", ylabel="F1@5cm (higher is better)")
     axes[1].set(xlabel="train time (s)", ylabel="Chamfer-L1 cm (lower is better)")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     plot = save_plot(fig, "lidar")
     body = (f"Generated rooms, 160x120, {args.frames} frames, a LiDAR sweep every 10 frames, {args.iters} "
-            f"geometry steps, no panoptic phase; seeds {args.seeds}. 'RGB + LiDAR' trains on the same "
-            "capture with every depth image removed.\n\n" + mean_table + "\n\nPer seed:\n\n" + table + kitti_table)
-    heads = [(f"LiDAR ablation F1@5cm: {m}", f"{means[m]['F1@5cm']:.3f} ({means[m]['train (s)']:.0f} s)")
-             for m in MODES]
+            f"geometry steps, no panoptic phase; seeds {args.seeds}; the default depth sensor and one with 3x "
+            "its noise std (`DepthNoise.degraded(3)`). 'RGB + LiDAR' trains on the same capture with every "
+            "depth image removed. Times are wall seconds on a shared 2-core machine: compare within a "
+            "row's run only.\n\n" + mean_table + "\n\nPer seed:\n\n" + table + kitti_table)
+    heads = [(f"LiDAR ablation F1@5cm / Chamfer: {g[1]}" + ("" if g[1] == MODES[2] else f", {g[0]}"),
+              f"{means[g]['F1@5cm']:.3f} / {means[g]['Chamfer-L1 (cm)']:.2f} cm ({means[g]['train (s)']:.0f} s)")
+             for g in groups]
     write_section("lidar", "LiDAR in training: ablation", body, headlines=heads, plot=plot)
     return 0
 

@@ -512,7 +512,7 @@ def lidar_setup(frames, sweeps, cfg: TrainConfig, log) -> tuple[list, dict]:
     model = estimate_depth_noise([fr.depth.numpy() for fr in frames])
     for v in views:
         w = range_weight(noise_at(v.r, model) if len(model[0]) else None, sigma_l)
-        v.w = torch.as_tensor(np.broadcast_to(w, v.r.shape), dtype=torch.float32)
+        v.w = torch.as_tensor(np.broadcast_to(w, v.r.shape).copy(), dtype=torch.float32)
     n = sum(len(s.points) for s in sweeps)
     w_all = torch.cat([v.w for v in views]) if views else torch.ones(1)
     log(f"LiDAR: {len(sweeps)} sweeps, {n} returns, range noise {sigma_l * 1000:.1f} mm; {len(views)} virtual "
