@@ -185,17 +185,19 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
 
     world / wnormals: [H, W, 3] world points and camera-facing world normals; usable: [H, W] pixels
     with both; sigma: [H, W] depth noise std; area: [H, W] m^2 per pixel. Returns the stuff map, the
-    class of the stuff plane each pixel lies on by distance alone (normal aside; 0 = none) and one
-    dict per plane kept (class, height, area)."""
+    class of the stuff plane each pixel lies on by distance alone (normal aside; 0 = none), the height
+    of the support each support pixel belongs to (NaN elsewhere) and one dict per plane kept (class,
+    height, area)."""
     import open3d as o3d
 
     H, W = usable.shape
     stuff = np.zeros((H, W), np.uint16)
     on_plane = np.zeros((H, W), np.uint16)
+    level = np.full((H, W), np.nan)
     planes: list[dict] = []
     idx = np.flatnonzero(usable.ravel())
     if len(idx) < 50:
-        return stuff, on_plane, planes
+        return stuff, on_plane, level, planes
     if len(idx) > params.plane_samples:
         idx = np.sort(rng.choice(idx, params.plane_samples, replace=False))
     pts_all = world.reshape(-1, 3)
@@ -208,6 +210,7 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
     heights = world @ up
     min_inliers = max(30, len(idx) // 50)
     pool = idx
+    o3d.utility.random.seed(int(rng.integers(2**31)))      # the same labels on every run
     for _ in range(params.max_planes):
         if len(pool) < min_inliers:
             break
@@ -224,15 +227,27 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
         # the side the cameras saw: most sampled normals of the inliers point that way
         if float(np.sum(nrm_all[pool[inl]] @ n)) < 0:
             n, d = -n, -d
+        sample = pts_all[pool[inl]]
         pool = np.delete(pool, inl)
         c_up = float(n @ up)
+        # Snapped to gravity: a floor or table top is level and a wall plumb; a plane through three
+        # noisy points is tilted a little, enough to lose the far side of a table top.
         if abs(c_up) >= cos_h:
             kind = "up" if c_up > 0 else "down"
+            n = up * np.sign(c_up)
         elif abs(c_up) <= sin_v:
             kind = "vertical"
+            n = n - c_up * up
+            n /= np.linalg.norm(n)
         else:
             continue                                    # a slanted plane: a ramp, a lid, a roof of a box
+        d = -float(np.median(sample @ n))
         dist = np.abs(world @ n + d)
+        # the offset again from every pixel near the plane (the sample's median carries its noise)
+        close = valid & (stuff == 0) & (dist < params.noise_k * sigma + 0.003)
+        if close.any():
+            d -= float(np.median((world @ n + d)[close]))
+            dist = np.abs(world @ n + d)
         near = valid & (stuff == 0) & (dist < params.noise_k * sigma + 0.003)
         # a pixel without a normal (image border, beside an invalid one) goes by its distance alone
         member = near & (~usable | (wnormals @ n > cos_agree))
@@ -266,8 +281,10 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
         take = big[lab]
         stuff[take] = cls
         on_plane[near & (on_plane == 0)] = cls
+        if cls == SUPPORT:
+            level[take] = h
         planes.append({"class": STUFF_NAMES[cls], "height": h, "area": float(piece_area[big].sum())})
-    return stuff, on_plane, planes
+    return stuff, on_plane, level, planes
 
 
 def grow_into(labels: np.ndarray, free: np.ndarray, depth: np.ndarray, tolerance: np.ndarray,
@@ -357,6 +374,37 @@ def absorb_plane_specks(clusters: np.ndarray, stuff: np.ndarray, on_plane: np.nd
     return out, stuff
 
 
+def absorb_support_parts(clusters: np.ndarray, stuff: np.ndarray, level: np.ndarray, heights: np.ndarray,
+                         tolerance: float, depth_below: float = 0.12) -> tuple[np.ndarray, np.ndarray]:
+    """Clusters that hang from a support are the support's furniture: a table's legs, apron and the
+    edge of its top, a shelf's sides. Such a cluster touches a support piece in the image and its top
+    lies just under that support's level (within `depth_below` under it, at most `tolerance` over);
+    a thing standing on the support rises above it and stays a thing.
+
+    level: [H, W] support height at support pixels (NaN elsewhere); heights: [H, W] pixel heights."""
+    from scipy import ndimage
+
+    n = int(clusters.max())
+    if n == 0 or not np.isfinite(level).any():
+        return clusters, stuff
+    # the support level next to each pixel (within 2 pixels): the highest one around
+    near_level = ndimage.maximum_filter(np.where(np.isfinite(level), level, -np.inf), size=5)
+    ids = np.arange(1, n + 1)
+    touching = ndimage.maximum(np.isfinite(near_level), clusters, ids).astype(bool)
+    if not touching.any():
+        return clusters, stuff
+    support_h = ndimage.maximum(near_level, clusters, ids)
+    top = np.array([np.percentile(heights[clusters == i], 95) if t else np.inf for i, t in zip(ids, touching)])
+    hang = touching & (top <= support_h + tolerance) & (top >= support_h - depth_below)
+    if not hang.any():
+        return clusters, stuff
+    flag = np.concatenate([[False], hang])
+    take = flag[clusters]
+    stuff = stuff.copy()
+    stuff[take] = SUPPORT
+    return np.where(take, 0, clusters), stuff
+
+
 def fill_stuff_holes(semantic: np.ndarray, valid: np.ndarray, stuff: np.ndarray, max_pixels: float = 2.0):
     """Valid pixels left unlabelled within `max_pixels` of a stuff pixel take its class: the specks a
     plane's distance or normal test missed (noise), not worth an object each."""
@@ -369,6 +417,20 @@ def fill_stuff_holes(semantic: np.ndarray, valid: np.ndarray, stuff: np.ndarray,
     out = semantic.copy()
     out[take] = stuff[iv[take], iu[take]]
     return out
+
+
+def fill_invalid_specks(semantic: np.ndarray, instance: np.ndarray, valid: np.ndarray):
+    """Invalid pixels whose 8 neighbours hold one label (class and instance) take it."""
+    from scipy import ndimage
+
+    key = semantic.astype(np.int64) * 65536 + instance
+    lo = ndimage.grey_erosion(np.where(valid, key, np.iinfo(np.int64).max), size=(3, 3))
+    hi = ndimage.grey_dilation(np.where(valid, key, -1), size=(3, 3))
+    take = ~valid & (lo == hi) & (hi > 0)
+    sem, inst = semantic.copy(), instance.copy()
+    sem[take] = (hi[take] // 65536).astype(sem.dtype)
+    inst[take] = (hi[take] % 65536).astype(inst.dtype)
+    return sem, inst
 
 
 def relabel(labels: np.ndarray, min_pixels: int) -> np.ndarray:
@@ -419,7 +481,7 @@ def segment_frame(depth: np.ndarray, rgb: np.ndarray | None, K: np.ndarray, c2w:
     cos_view = np.abs(np.einsum("ijk,ijk->ij", normals, ray))
     area = np.where(valid, _pixel_area(z, np.where(nok, cos_view, 1.0), K), 0.0)
     rng = np.random.default_rng(seed)
-    stuff, on_plane, planes = fit_planes(world, wnormals, valid, valid & nok, sigma, area, float(t @ capture.up), capture,
+    stuff, on_plane, level, planes = fit_planes(world, wnormals, valid, valid & nok, sigma, area, float(t @ capture.up), capture,
                                params, rng)
     semantic[:] = stuff
     info["planes"] = planes
@@ -437,10 +499,13 @@ def segment_frame(depth: np.ndarray, rgb: np.ndarray | None, K: np.ndarray, c2w:
     clusters = grow_into(clusters, free, z, tolerance)
     clusters = merge_nested(clusters, world, capture.up, margin=0.02)
     clusters, stuff = absorb_plane_specks(clusters, stuff, on_plane)
+    clusters, stuff = absorb_support_parts(clusters, stuff, level, world @ capture.up, params.floor_tolerance)
     clusters = relabel(clusters, min_pixels)
     instance[:] = clusters.astype(np.uint16)
     semantic[:] = stuff
     semantic[clusters > 0] = OBJECT
     semantic[:] = fill_stuff_holes(semantic, valid, stuff)
+    # a lone invalid pixel inside a labelled region takes its label: the sensor missed a speck
+    semantic[:], instance[:] = fill_invalid_specks(semantic, instance, valid)
     info["objects"] = int(clusters.max())
     return semantic, instance, info
