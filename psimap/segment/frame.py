@@ -189,6 +189,7 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
     of the support each support pixel belongs to (NaN elsewhere) and one dict per plane kept (class,
     height, area)."""
     import open3d as o3d
+    from scipy import ndimage
 
     H, W = usable.shape
     stuff = np.zeros((H, W), np.uint16)
@@ -280,7 +281,9 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
             continue
         take = big[lab]
         stuff[take] = cls
-        on_plane[near & (on_plane == 0)] = cls
+        # beside the pieces taken: the specks and rims their normal test lost (not a far coplanar top)
+        beside = ndimage.binary_dilation(take, iterations=3)
+        on_plane[near & beside & (on_plane == 0)] = cls
         if cls == SUPPORT:
             level[take] = h
         planes.append({"class": STUFF_NAMES[cls], "height": h, "area": float(piece_area[big].sum())})
@@ -304,34 +307,61 @@ def grow_into(labels: np.ndarray, free: np.ndarray, depth: np.ndarray, tolerance
     return out
 
 
-def merge_nested(labels: np.ndarray, world: np.ndarray, up: np.ndarray, margin: float) -> np.ndarray:
-    """Clusters whose footprint on the ground lies inside a neighbouring cluster's footprint are
-    one object: a mug's or a bowl's inside, cut from its outside by the rim's depth step.
+def _circle(xy: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares circle through points xy [N, 2] (algebraic fit): (centre [2], radius, rms residual)."""
+    A = np.column_stack([2 * xy, np.ones(len(xy))])
+    sol, *_ = np.linalg.lstsq(A, (xy ** 2).sum(1), rcond=None)
+    c = sol[:2]
+    r = float(np.sqrt(max(sol[2] + c @ c, 0.0)))
+    rms = float(np.sqrt(np.mean((np.linalg.norm(xy - c, axis=1) - r) ** 2)))
+    return c, r, rms
 
-    labels: [H, W] cluster ids; world: [H, W, 3]; margin: metres the footprint may stick out."""
+
+def _holds(outer_xy: np.ndarray, inner_xy: np.ndarray, margin: float) -> bool:
+    """Whether the ground footprint of `outer_xy` [N, 2] holds `inner_xy` [M, 2]: inside its bounding
+    box, or, for a round outside (a mug or bowl seen from one side shows half its wall), inside the
+    circle the wall lies on."""
+    lo, hi = outer_xy.min(0) - margin, outer_xy.max(0) + margin
+    if np.all(inner_xy >= lo) and np.all(inner_xy <= hi):
+        return True
+    if len(outer_xy) < 8:
+        return False
+    c, r, rms = _circle(outer_xy)
+    if not (0.01 < r < 0.5) or rms > 0.2 * r:
+        return False
+    return float(np.mean(np.linalg.norm(inner_xy - c, axis=1) <= r + margin)) >= 0.95
+
+
+def merge_nested(labels: np.ndarray, world: np.ndarray, up: np.ndarray, margin: float) -> np.ndarray:
+    """Neighbouring clusters of which one lies inside the other's footprint on the ground, and does
+    not rise above its top, are one object: a mug's or a bowl's inside, cut from its outside by the
+    rim's depth step. A thing standing in or on another small thing joins it too (a limit).
+
+    labels: [H, W] cluster ids; world: [H, W, 3]; margin: metres a footprint may stick out."""
     from scipy import ndimage
 
     n = int(labels.max())
     if n < 2:
         return labels
-    # two horizontal axes perpendicular to up
+    # neighbours: clusters within 2 pixels of each other in the image
+    grown = ndimage.grey_dilation(labels, size=(5, 5))
+    touch = (labels > 0) & (grown > 0) & (grown != labels)
+    if not touch.any():
+        return labels
+    pairs = np.unique(np.sort(np.stack([labels[touch], grown[touch]], 1), axis=1), axis=0)
+    # ground coordinates along two horizontal axes perpendicular to up, and heights
     a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(up, a)
     flat = labels.ravel()
-    sel = flat > 0
-    ids = flat[sel]
-    P = world.reshape(-1, 3)[sel]
-    xa, xb = P @ a, P @ b
-    lo_a = ndimage.minimum(xa, ids, np.arange(1, n + 1))
-    hi_a = ndimage.maximum(xa, ids, np.arange(1, n + 1))
-    lo_b = ndimage.minimum(xb, ids, np.arange(1, n + 1))
-    hi_b = ndimage.maximum(xb, ids, np.arange(1, n + 1))
-    size = np.bincount(ids, minlength=n + 1)[1:]
-    # neighbours: clusters within 2 pixels of each other in the image
-    grown = ndimage.grey_dilation(labels, size=(5, 5))
-    touch = (labels > 0) & (grown > 0) & (grown != labels)
-    pairs = np.unique(np.stack([labels[touch], grown[touch]], 1), axis=0) if touch.any() else np.zeros((0, 2), int)
+    order = np.argsort(flat, kind="stable")
+    starts = np.searchsorted(flat[order], np.arange(n + 2))
+    P = world.reshape(-1, 3)
+
+    def cluster(i):
+        pts = P[order[starts[i]:starts[i + 1]]]
+        return np.column_stack([pts @ a, pts @ b]), pts @ up
+
     parent = np.arange(n + 1)
 
     def root(i):
@@ -341,68 +371,93 @@ def merge_nested(labels: np.ndarray, world: np.ndarray, up: np.ndarray, margin: 
         return i
 
     for i, j in pairs:
-        small, big = (i, j) if size[i - 1] <= size[j - 1] else (j, i)
-        s, g = small - 1, big - 1
-        extent = max(hi_a[g] - lo_a[g], hi_b[g] - lo_b[g])
-        if extent > 1.0:                 # an object's inside, not a furniture's
-            continue
-        inside = (lo_a[s] >= lo_a[g] - margin and hi_a[s] <= hi_a[g] + margin
-                  and lo_b[s] >= lo_b[g] - margin and hi_b[s] <= hi_b[g] + margin)
-        if inside:
-            parent[root(small)] = root(big)
+        (xi, hi), (xj, hj) = cluster(i), cluster(j)
+        for (xo, ho), (xn, hn) in (((xi, hi), (xj, hj)), ((xj, hj), (xi, hi))):
+            if np.ptp(xo, axis=0).max() > 1.0:             # an object's inside, not a furniture's
+                continue
+            if np.percentile(hn, 95) <= np.percentile(ho, 99) + margin and _holds(xo, xn, margin):
+                parent[root(i)] = root(j)
+                break
     roots = np.array([root(i) for i in range(n + 1)])
     return roots[labels]
 
 
-def absorb_plane_specks(clusters: np.ndarray, stuff: np.ndarray, on_plane: np.ndarray,
-                        share: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """Clusters lying (`share` of their pixels) on a stuff plane by distance are that stuff: a noise
-    outlier turns its neighbours' normals, which then fail the plane's normal test, not an object."""
-    n = int(clusters.max())
-    if n == 0 or not on_plane.any():
-        return clusters, stuff
-    size = np.bincount(clusters.ravel(), minlength=n + 1)
-    near = np.bincount(clusters.ravel(), weights=(on_plane > 0).ravel(), minlength=n + 1)
-    flat = near >= share * np.maximum(size, 1)
-    flat[0] = False
-    if not flat.any():
-        return clusters, stuff
-    take = flat[clusters] & (on_plane > 0)
-    stuff = stuff.copy()
-    stuff[take] = on_plane[take]
-    out = np.where(flat[clusters], 0, clusters)
-    return out, stuff
+def join_fragments(labels: np.ndarray, world: np.ndarray, max_pixels: int, gap: np.ndarray) -> np.ndarray:
+    """Clusters of fewer than `max_pixels` join the neighbouring cluster they touch in 3D (closest
+    points within `gap` [H, W] metres of each other): a box's side seen at a grazing angle, cut off
+    by the depth steps such a side makes from pixel to pixel. A small thing alone on a plane has no
+    neighbouring cluster and stays.
+
+    labels: [H, W]; world: [H, W, 3]."""
+    from scipy import ndimage
+
+    n = int(labels.max())
+    if n < 2:
+        return labels
+    size = np.bincount(labels.ravel(), minlength=n + 1)
+    out = labels.copy()
+    for i in np.flatnonzero((size > 0) & (size < max_pixels)):
+        if i == 0:
+            continue
+        mine = labels == i
+        ring = ndimage.binary_dilation(mine, iterations=2) & ~mine & (labels > 0)
+        if not ring.any():
+            continue
+        from scipy.spatial import cKDTree
+
+        d, j = cKDTree(world[ring]).query(world[mine])
+        k = int(np.argmin(d))
+        if d[k] <= gap[mine][k]:
+            out[mine] = out[ring][j[k]]
+    return out
 
 
 def absorb_support_parts(clusters: np.ndarray, stuff: np.ndarray, level: np.ndarray, heights: np.ndarray,
-                         tolerance: float, depth_below: float = 0.12) -> tuple[np.ndarray, np.ndarray]:
+                         depth: np.ndarray, tolerance: float, depth_below: float = 0.12) -> tuple[np.ndarray, np.ndarray]:
     """Clusters that hang from a support are the support's furniture: a table's legs, apron and the
-    edge of its top, a shelf's sides. Such a cluster touches a support piece in the image and its top
-    lies just under that support's level (within `depth_below` under it, at most `tolerance` over);
-    a thing standing on the support rises above it and stays a thing.
+    edge of its top, a shelf's sides. Such a cluster touches a support piece in the image (or a part
+    already joined to one: a leg hangs from the top's edge) and its top lies just under that support's
+    level (within `depth_below` under it, at most `tolerance` over); a thing standing on the support
+    rises above it and stays a thing. A cluster the support hides the top of (it meets the support
+    more than depth_below / 2 behind it) hangs from it when it stays under its level.
 
-    level: [H, W] support height at support pixels (NaN elsewhere); heights: [H, W] pixel heights."""
+    level: [H, W] support height at support pixels (NaN elsewhere); heights, depth: [H, W] pixel
+    heights and depths."""
     from scipy import ndimage
 
-    n = int(clusters.max())
-    if n == 0 or not np.isfinite(level).any():
-        return clusters, stuff
-    # the support level next to each pixel (within 2 pixels): the highest one around
-    near_level = ndimage.maximum_filter(np.where(np.isfinite(level), level, -np.inf), size=5)
-    ids = np.arange(1, n + 1)
-    touching = ndimage.maximum(np.isfinite(near_level), clusters, ids).astype(bool)
-    if not touching.any():
-        return clusters, stuff
-    support_h = ndimage.maximum(near_level, clusters, ids)
-    top = np.array([np.percentile(heights[clusters == i], 95) if t else np.inf for i, t in zip(ids, touching)])
-    hang = touching & (top <= support_h + tolerance) & (top >= support_h - depth_below)
-    if not hang.any():
-        return clusters, stuff
-    flag = np.concatenate([[False], hang])
-    take = flag[clusters]
+    level = level.copy()
     stuff = stuff.copy()
-    stuff[take] = SUPPORT
-    return np.where(take, 0, clusters), stuff
+    for _ in range(4):                                  # top -> its edge -> the legs under the edge
+        n = int(clusters.max())
+        if n == 0 or not np.isfinite(level).any():
+            break
+        # the support level next to each pixel (within 2 pixels): the highest one around
+        near_level = ndimage.maximum_filter(np.where(np.isfinite(level), level, -np.inf), size=5)
+        ids = np.arange(1, n + 1)
+        support_h = np.asarray(ndimage.maximum(near_level, clusters, ids), np.float64).reshape(-1)
+        present = np.bincount(clusters.ravel(), minlength=n + 1)[1:] > 0
+        touching = np.isfinite(support_h) & present
+        if not touching.any():
+            break
+        # the support's depth next to each pixel: a cluster farther than it where they meet goes on
+        # behind it (a back leg under a table top), its top hidden by the support
+        near_depth = ndimage.minimum_filter(np.where(np.isfinite(level), depth, np.inf), size=5)
+        top = np.full(n, np.inf)
+        hidden = np.zeros(n, bool)
+        for i in np.flatnonzero(touching):
+            mine = clusters == i + 1
+            top[i] = np.percentile(heights[mine], 95)
+            contact = mine & np.isfinite(near_depth)
+            hidden[i] = contact.any() and np.median(depth[contact] - near_depth[contact]) > depth_below / 2
+        hang = touching & (top <= support_h + tolerance) & ((top >= support_h - depth_below) | hidden)
+        if not hang.any():
+            break
+        lut_h = np.concatenate([[np.nan], np.where(hang, support_h, np.nan)])
+        take = np.isfinite(lut_h[clusters])
+        stuff[take] = SUPPORT
+        level[take] = lut_h[clusters][take]
+        clusters = np.where(take, 0, clusters)
+    return clusters, stuff
 
 
 def fill_stuff_holes(semantic: np.ndarray, valid: np.ndarray, stuff: np.ndarray, max_pixels: float = 2.0):
@@ -426,7 +481,8 @@ def fill_invalid_specks(semantic: np.ndarray, instance: np.ndarray, valid: np.nd
     key = semantic.astype(np.int64) * 65536 + instance
     lo = ndimage.grey_erosion(np.where(valid, key, np.iinfo(np.int64).max), size=(3, 3))
     hi = ndimage.grey_dilation(np.where(valid, key, -1), size=(3, 3))
-    take = ~valid & (lo == hi) & (hi > 0)
+    surrounded = ndimage.uniform_filter(valid.astype(np.float32), size=3, mode="constant") * 9 >= 7.5
+    take = ~valid & surrounded & (lo == hi) & (hi > 0)
     sem, inst = semantic.copy(), instance.copy()
     sem[take] = (hi[take] // 65536).astype(sem.dtype)
     inst[take] = (hi[take] % 65536).astype(inst.dtype)
@@ -491,19 +547,23 @@ def segment_frame(depth: np.ndarray, rgb: np.ndarray | None, K: np.ndarray, c2w:
     col = colour_edges(rgb, params.colour_edge)
     if col is not None:
         edges |= col
-    free = valid & (stuff == 0)
+    # pixels on a stuff plane by distance whose normal failed its test (beside a thing's edge, or
+    # turned by a noise outlier) are not a thing's: they go to the plane below (fill_stuff_holes)
+    free = valid & (stuff == 0) & (on_plane == 0)
     clusters, _ = ndimage.label(free & ~edges)
     min_pixels = params.min_object_pixels or max(6, int(round(H * W / 4000)))
     clusters = relabel(clusters, max(2, min_pixels // 3))
     tolerance = params.noise_k * np.sqrt(2.0) * sigma + params.slope * z / f
     clusters = grow_into(clusters, free, z, tolerance)
     clusters = merge_nested(clusters, world, capture.up, margin=0.02)
-    clusters, stuff = absorb_plane_specks(clusters, stuff, on_plane)
-    clusters, stuff = absorb_support_parts(clusters, stuff, level, world @ capture.up, params.floor_tolerance)
+    clusters = join_fragments(clusters, world, 4 * min_pixels, 2 * tolerance + 0.005)
+    clusters, stuff = absorb_support_parts(clusters, stuff, level, world @ capture.up, z,
+                                           params.floor_tolerance)
     clusters = relabel(clusters, min_pixels)
     instance[:] = clusters.astype(np.uint16)
     semantic[:] = stuff
     semantic[clusters > 0] = OBJECT
+    semantic[(semantic == 0) & (on_plane > 0)] = on_plane[(semantic == 0) & (on_plane > 0)]
     semantic[:] = fill_stuff_holes(semantic, valid, stuff)
     # a lone invalid pixel inside a labelled region takes its label: the sensor missed a speck
     semantic[:], instance[:] = fill_invalid_specks(semantic, instance, valid)
