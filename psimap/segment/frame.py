@@ -358,9 +358,16 @@ def merge_nested(labels: np.ndarray, world: np.ndarray, up: np.ndarray, margin: 
     starts = np.searchsorted(flat[order], np.arange(n + 2))
     P = world.reshape(-1, 3)
 
+    cache: dict = {}
+
     def cluster(i):
-        pts = P[order[starts[i]:starts[i + 1]]]
-        return np.column_stack([pts @ a, pts @ b]), pts @ up
+        """(ground xy [N, 2], heights [N], largest ground extent) of cluster i, computed once."""
+        if i not in cache:
+            members = order[starts[i]:starts[i + 1]]
+            pts = P[members[::max(1, len(members) // 2000)]]        # a regular subsample: the tests are statistics
+            xy = np.column_stack([pts @ a, pts @ b])
+            cache[i] = (xy, pts @ up, float(np.ptp(xy, axis=0).max()))
+        return cache[i]
 
     parent = np.arange(n + 1)
 
@@ -371,9 +378,9 @@ def merge_nested(labels: np.ndarray, world: np.ndarray, up: np.ndarray, margin: 
         return i
 
     for i, j in pairs:
-        (xi, hi), (xj, hj) = cluster(i), cluster(j)
-        for (xo, ho), (xn, hn) in (((xi, hi), (xj, hj)), ((xj, hj), (xi, hi))):
-            if np.ptp(xo, axis=0).max() > 1.0:             # an object's inside, not a furniture's
+        ci, cj = cluster(i), cluster(j)
+        for (xo, ho, extent), (xn, hn, _) in ((ci, cj), (cj, ci)):
+            if extent > 1.0:                                # an object's inside, not a furniture's
                 continue
             if np.percentile(hn, 95) <= np.percentile(ho, 99) + margin and _holds(xo, xn, margin):
                 parent[root(i)] = root(j)
@@ -394,21 +401,27 @@ def join_fragments(labels: np.ndarray, world: np.ndarray, max_pixels: int, gap: 
     n = int(labels.max())
     if n < 2:
         return labels
+    from scipy.spatial import cKDTree
+
     size = np.bincount(labels.ravel(), minlength=n + 1)
     out = labels.copy()
+    boxes = ndimage.find_objects(labels)
+    H, W = labels.shape
     for i in np.flatnonzero((size > 0) & (size < max_pixels)):
-        if i == 0:
+        if i == 0 or boxes[i - 1] is None:
             continue
-        mine = labels == i
-        ring = ndimage.binary_dilation(mine, iterations=2) & ~mine & (labels > 0)
+        sv, su = boxes[i - 1]
+        crop = (slice(max(sv.start - 2, 0), min(sv.stop + 2, H)), slice(max(su.start - 2, 0), min(su.stop + 2, W)))
+        lab = labels[crop]
+        mine = lab == i
+        ring = ndimage.binary_dilation(mine, iterations=2) & ~mine & (lab > 0)
         if not ring.any():
             continue
-        from scipy.spatial import cKDTree
-
-        d, j = cKDTree(world[ring]).query(world[mine])
+        pts = world[crop]
+        d, j = cKDTree(pts[ring]).query(pts[mine])
         k = int(np.argmin(d))
-        if d[k] <= gap[mine][k]:
-            out[mine] = out[ring][j[k]]
+        if d[k] <= gap[crop][mine][k]:
+            out[crop][mine] = out[crop][ring][j[k]]
     return out
 
 
