@@ -117,6 +117,16 @@ def test_hollow_bowl_is_one_object_seen_from_above():
     assert info["objects"] == 1
 
 
+def test_a_thing_in_front_of_another_is_cut_from_it_by_the_depth_step():
+    """Overlapping in the image, 40 cm apart in depth, on one floor: only the depth step parts them."""
+    things = [box((0.12, 0.12, 0.2), (0.0, 0.2, 0.1), 1), box((0.5, 0.3, 0.6), (0.0, 0.6, 0.3), 2)]
+    c2w = look_at([0, -0.5, 0.5], [0, 0.6, 0.2])
+    depth, gt = cast(room(*things, wall=False), c2w)
+    sem, inst, info = segment_frame(depth, None, K, c2w, Z_UP)
+    assert best_iou(inst, gt, 1) > 0.8 and best_iou(inst, gt, 2) > 0.8
+    assert info["objects"] == 2
+
+
 def test_a_table_top_is_support_and_its_legs_join_it_while_a_thing_on_it_stays_a_thing():
     legs = [box((0.05, 0.05, 0.7), (x, y, 0.35), 1) for x in (-0.45, 0.45) for y in (0.2, 0.8)]
     top = box((1.0, 0.7, 0.04), (0, 0.5, 0.72), 1)
