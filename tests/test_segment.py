@@ -117,6 +117,17 @@ def test_hollow_bowl_is_one_object_seen_from_above():
     assert info["objects"] == 1
 
 
+def test_a_floor_patch_off_the_level_by_centimetres_is_floor_but_a_small_cube_is_not():
+    """A real floor bends by centimetres far from the camera: a flat patch 3 cm over the floor level
+    that the frame's plane misses is still floor; a 4 cm cube beside it stays an object."""
+    things = [box((1.2, 0.8, 0.03), (0.0, 2.2, 0.015), 1), box((0.04, 0.04, 0.04), (0.3, 0.6, 0.02), 2)]
+    c2w = look_at([0, -0.5, 1.2], [0, 1.5, 0.0])
+    depth, gt = cast(room(*things, wall=False), c2w)
+    sem, inst, info = segment_frame(depth, None, K, c2w, Z_UP)
+    assert np.mean(sem[gt == 1] == FLOOR) > 0.9
+    assert best_iou(inst, gt, 2) > 0.5 and info["objects"] == 1
+
+
 def test_a_thing_in_front_of_another_is_cut_from_it_by_the_depth_step():
     """Overlapping in the image, 40 cm apart in depth, on one floor: only the depth step parts them."""
     things = [box((0.12, 0.12, 0.2), (0.0, 0.2, 0.1), 1), box((0.5, 0.3, 0.6), (0.0, 0.6, 0.3), 2)]

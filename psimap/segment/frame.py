@@ -473,6 +473,31 @@ def absorb_support_parts(clusters: np.ndarray, stuff: np.ndarray, level: np.ndar
     return clusters, stuff
 
 
+def absorb_floor_patches(clusters: np.ndarray, stuff: np.ndarray, heights: np.ndarray, up_cos: np.ndarray,
+                         nok: np.ndarray, below: float, share: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Clusters lying flat under `below` (the floor level + tolerance) are floor: a far, grazing patch of
+    a real floor the frame's plane missed (a Kinect's floor bends by centimetres at 3 m). Flat: `share`
+    of the pixels with a normal face up within 30 degrees; a small box on the floor shows its sides.
+
+    heights, up_cos: [H, W] pixel height and normal . up; nok: [H, W] normal defined."""
+    n = int(clusters.max())
+    if n == 0:
+        return clusters, stuff
+    flat = nok & (up_cos >= np.cos(np.radians(30.0)))
+    size = np.bincount(clusters.ravel(), minlength=n + 1)
+    up_share = np.bincount(clusters.ravel(), weights=flat.ravel(), minlength=n + 1) / np.maximum(size, 1)
+    low = np.zeros(n + 1, bool)
+    for i in np.flatnonzero((up_share >= share) & (size > 0)):
+        if i:
+            low[i] = np.percentile(heights[clusters == i], 95) <= below
+    if not low.any():
+        return clusters, stuff
+    take = low[clusters]
+    stuff = stuff.copy()
+    stuff[take] = FLOOR
+    return np.where(take, 0, clusters), stuff
+
+
 def fill_stuff_holes(semantic: np.ndarray, valid: np.ndarray, stuff: np.ndarray, max_pixels: float = 2.0):
     """Valid pixels left unlabelled within `max_pixels` of a stuff pixel take its class: the specks a
     plane's distance or normal test missed (noise), not worth an object each."""
@@ -572,6 +597,9 @@ def segment_frame(depth: np.ndarray, rgb: np.ndarray | None, K: np.ndarray, c2w:
     clusters = join_fragments(clusters, world, 4 * min_pixels, 2 * tolerance + 0.005)
     clusters, stuff = absorb_support_parts(clusters, stuff, level, world @ capture.up, z,
                                            params.floor_tolerance)
+    if capture.floor is not None:
+        clusters, stuff = absorb_floor_patches(clusters, stuff, world @ capture.up, wnormals @ capture.up, nok,
+                                               capture.floor + params.floor_tolerance)
     clusters = relabel(clusters, min_pixels)
     instance[:] = clusters.astype(np.uint16)
     semantic[:] = stuff
