@@ -133,6 +133,9 @@ def segment_capture(data, *, up: str = "auto", every: int = 1, params: SegmentPa
     if preview is not None:
         preview_path = check_output_file(preview or root / "segment_preview.png", what="preview")
 
+    import open3d  # noqa: F401  (imported before the clock starts: a second of imports is no frame's time)
+    import scipy.ndimage  # noqa: F401
+
     t0 = time.perf_counter()
     survey_idx = indices[:: max(1, len(indices) // SURVEY_FRAMES)][:SURVEY_FRAMES]
     capture, found = survey(seq, survey_idx, up)
