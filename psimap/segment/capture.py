@@ -109,10 +109,11 @@ def frame_indices(count: int, every: int) -> list[int]:
 
 
 def segment_capture(data, *, up: str = "auto", every: int = 1, params: SegmentParams | None = None,
-                    force: bool = False, preview: str | None = "", progress: bool = True) -> dict:
+                    force: bool = False, preview: str | None = "", progress: bool = True,
+                    preview_frames: int = 6, preview_dpi: int = 110) -> dict:
     """Label the capture at `data` and write its labels overlay (psimap.data.label_overlay) and a
     contact sheet; returns a summary dict. preview: PNG path ("" = DATA/segment_preview.png,
-    None = none)."""
+    None = none) of `preview_frames` evenly spaced frames at `preview_dpi`."""
     from psimap.data import load
     from psimap.data.frames import ClassInfo
     from psimap.data.label_overlay import check_label_write, write_label_overlay
@@ -140,7 +141,7 @@ def segment_capture(data, *, up: str = "auto", every: int = 1, params: SegmentPa
     survey_idx = indices[:: max(1, len(indices) // SURVEY_FRAMES)][:SURVEY_FRAMES]
     capture, found = survey(seq, survey_idx, up)
     t_survey = time.perf_counter() - t0
-    n_show = 6
+    n_show = max(1, int(preview_frames))
     show = set(indices[:: max(1, len(indices) // n_show)][:n_show])
     sheet, stats = [], {"planes": [], "objects": [], "seconds": [], "stuff": {}}
 
@@ -167,7 +168,7 @@ def segment_capture(data, *, up: str = "auto", every: int = 1, params: SegmentPa
     classes = [ClassInfo(i, n, t) for i, n, t in CLASS_TABLE]
     manifest = write_label_overlay(root, classes, labelled(), source="psimap segment", force=force)
     if preview_path is not None and sheet:
-        contact_sheet(sheet, preview_path)
+        contact_sheet(sheet, preview_path, dpi=preview_dpi)
     sec = np.asarray(stats["seconds"])
     return {"data": str(root), "frames": len(indices), "of": len(seq), "labels": str(manifest),
             "preview": None if preview_path is None else str(preview_path), **found,
@@ -192,7 +193,7 @@ def colourise(semantic: np.ndarray, instance: np.ndarray) -> np.ndarray:
     return out
 
 
-def contact_sheet(frames, path) -> None:
+def contact_sheet(frames, path, dpi: int = 110) -> None:
     """PNG of frames [(name, rgb [H, W, 3], semantic, instance)]: each RGB beside its labels."""
     import matplotlib
 
@@ -216,7 +217,7 @@ def contact_sheet(frames, path) -> None:
     fig.suptitle("psimap segment: floor brown, wall blue, ceiling cream, support green, objects coloured",
                  fontsize=7)
     fig.tight_layout()
-    save_figure(fig, path, dpi=110)
+    save_figure(fig, path, dpi=dpi)
     plt.close(fig)
 
 
