@@ -25,6 +25,8 @@ COMMANDS = {
              "geometry, panoptic and object metrics against ground truth"),
     "labels": (O.LabelsOptions, "psimap.panoptic:cli_labels",
                "3D-consistent 2D panoptic labels (COCO panoptic)"),
+    "segment": (O.SegmentOptions, "psimap.segment:cli_segment",
+                "model-free per-frame pseudo-labels (planes + clusters) for a capture without masks"),
     "import-masks": (O.ImportMasksOptions, "psimap.data.masks_import:cli_import_masks",
                      "per-frame labels from a 2D segmenter's masks (COCO panoptic / instances, SAM)"),
 }

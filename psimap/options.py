@@ -141,6 +141,22 @@ class LabelsOptions:
     overwrite: bool = overwrite_opt("folder")
 
 
+@dataclass
+class SegmentOptions:
+    data: str = pos("capture folder without labels (any layout psimap reads)")
+    up: str = opt("auto", "which way is up in the capture: auto (estimated from its surfaces and cameras), "
+                          "or +z, -z, +y, -y, +x, -x, or a vector 'x,y,z'")
+    every: int = opt(1, "label every N-th frame (1 = all; the others stay unlabelled)")
+    force: bool = opt(False, "replace the capture's existing labels")
+    preview: str = opt("", "contact sheet PNG of a few frames and their labels (default: DATA/segment_preview.png)")
+    no_preview: bool = opt(False, "write no contact sheet")
+    noise_k: float = opt(3.0, "plane and depth-edge thresholds, in depth-noise std at the pixel's range")
+    min_wall_area: float = opt(0.8, "m^2 of one connected vertical plane piece for it to be a wall")
+    min_support_area: float = opt(0.15, "m^2 of one connected up-facing plane piece above the floor for it "
+                                        "to be a support (table or counter top)")
+    colour_edge: float = opt(0.0, "also split clusters at RGB steps larger than this (0..1.7; 0 = off)")
+    min_pixels: int = opt(0, "smallest object cluster in pixels (0 = image pixels / 4000, at least 6)")
+
 
 @dataclass
 class ImportMasksOptions:

@@ -30,6 +30,8 @@ STAGES = [
     ("base", ("psimap.io_utils", "psimap.camera", "psimap.transforms", "psimap.nonfinite")),
     ("data", ("psimap.data",)),
     ("geometry", ("psimap.geometry",)),
+    # model-free pseudo-labels of a capture (`psimap segment`): planes and clusters of its frames
+    ("segment", ("psimap.segment",)),
     # thread counts of the renderer's kernels (and torch) for the small per-view work of meshing
     ("render", ("psimap.render", "psimap.threads")),
     ("map", ("psimap.checkpoint", "psimap.scene")),

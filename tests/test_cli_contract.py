@@ -55,11 +55,15 @@ CALLS2 = {
     "labels": ["labels", "{tmp}/demo/scene.ckpt", "{tmp}/demo/scene", "--out", "{tmp}/labels", "--topk", "2"],
     "bad_ckpt": ["mesh", "{tmp}/bad.ckpt", "--out", "{tmp}/bad.ply"],
     "bad_ckpt_debug": ["export", "{tmp}/bad.ckpt", "--out", "{tmp}/e_bad", "--debug"],
+    # the generated scene has its own labels: --force replaces them with the segmenter's
+    "segment": ["segment", "{tmp}/gen", "--force", "--up", "+z", "--every", "2", "--preview", "{tmp}/seg.png",
+                "--noise-k", "3", "--min-wall-area", "0.8", "--min-support-area", "0.15", "--colour-edge", "0.5",
+                "--min-pixels", "4"],
 }
 DENSITY = {"cabinet": 321.0}
 # Options a dedicated test file exercises through the console script instead (flag -> where).
 ELSEWHERE = {"overwrite": "tests/test_output_safety.py", "objects": "tests/test_metrics_objects.py",
-             "images": "tests/test_import_masks.py"}
+             "no_preview": "tests/test_segment.py", "images": "tests/test_import_masks.py"}
 
 
 def _run(argv, tmp: Path) -> subprocess.CompletedProcess:
@@ -255,6 +259,15 @@ def test_errors_are_one_line_and_debug_shows_the_traceback(ran):
     assert r.returncode == 1 and "Traceback (most recent call last)" in r.stderr
     assert "psimap.PsimapError: " in r.stderr and "truncated or corrupt checkpoint" in r.stderr
     assert not (tmp / "bad.ply").exists() and not (tmp / "e_bad").exists()
+
+
+def test_segment_options(ran):
+    res, tmp = ran
+    out = ok(res, "segment").stdout
+    assert "labelled 2 of 3 frames" in out and "up [0.0, 0.0, 1.0] (given)" in out
+    meta = json.loads((tmp / "gen" / "labels.json").read_text())
+    assert sorted(meta["frames"]) == ["frame_00000", "frame_00002"]
+    assert (tmp / "seg.png").stat().st_size > 5_000 and not (tmp / "gen" / "segment_preview.png").exists()
 
 
 def test_import_masks_options(ran):
