@@ -35,6 +35,7 @@ DENSITY_KG_M3: dict[str, float] = {
     # furniture and household (envelopes contain air: drawers, cushions, frames)
     "chair": 150.0, "table": 250.0, "desk": 250.0, "sofa": 120.0, "couch": 120.0, "bed": 150.0,
     "cabinet": 200.0, "shelf": 200.0, "bookshelf": 250.0, "dresser": 250.0, "nightstand": 250.0,
+    "furniture": 200.0,      # psimap segment's class for any cluster over 0.6 m: a cabinet's envelope
     "book": 700.0, "books": 700.0, "box_cardboard": 80.0, "basket": 100.0, "bin": 100.0,
     "foam": 40.0, "sponge": 30.0,      # polyurethane / EVA foam: 20-60 kg/m^3
     "pillow": 40.0, "cushion": 40.0, "towel": 200.0, "lamp": 300.0, "plant": 400.0, "pot": 1500.0,
@@ -64,6 +65,7 @@ STATIC_CLASSES: frozenset[str] = frozenset({
     "table", "desk", "counter", "countertop", "cabinet", "shelf", "shelves", "bookshelf", "bookcase",
     "dresser", "wardrobe", "closet", "bed", "sofa", "couch", "refrigerator", "fridge", "oven", "stove",
     "dishwasher", "washer", "dryer", "sink", "toilet", "bathtub", "piano", "nightstand", "sideboard",
+    "furniture",             # psimap segment's class for any cluster over 0.6 m (docs/segment.md)
 })
 
 

@@ -237,10 +237,10 @@ def test_cli_labels_a_capture_refuses_to_replace_them_and_train_sees_them(tablet
     assert main(["segment", str(data), "--force"]) == 0
     assert (data / "segment_preview.png").stat().st_size > 10_000
     meta = json.loads((data / "labels.json").read_text())
-    assert [c["name"] for c in meta["classes"]] == ["floor", "wall", "ceiling", "support", "object"]
+    assert [c["name"] for c in meta["classes"]] == ["floor", "wall", "ceiling", "support", "object", "furniture"]
     assert len(meta["frames"]) == 6
     seq = load(data)                                             # what `psimap train` reads
-    assert [c.name for c in seq.classes if c.isthing] == ["object"]
+    assert [c.name for c in seq.classes if c.isthing] == ["object", "furniture"]
     labels = [(seq[i].semantic, seq[i].instance) for i in range(len(seq))]
     # numbers against ground truth: the things on the table are found one by one, the table is support
     gt_classes = load(tabletop).classes
@@ -267,3 +267,17 @@ def test_bad_input_is_one_error(tmp_path, capsys):
     assert main(["segment", str(tmp_path), "--every", "0"]) == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "error" in err
+
+
+def test_a_cluster_over_furniture_size_is_furniture_and_a_small_one_an_object():
+    """Size classes: a 0.9 m tall narrow cabinet (its top too small for a support) is `furniture`
+    (exported static, weighed like furniture); a 20 cm box beside it stays an `object`."""
+    from psimap.segment.frame import FURNITURE
+
+    things = [box((0.3, 0.3, 0.9), (-0.4, 0.7, 0.45), 1), box((0.2, 0.2, 0.2), (0.3, 0.5, 0.1), 2)]
+    c2w = look_at([0, -0.9, 1.3], [0, 0.7, 0.2])
+    depth, gt = cast(room(*things), c2w)
+    sem, inst, _ = segment_frame(depth, None, K, c2w, Z_UP)
+    assert best_iou(inst, gt, 1) > 0.7 and best_iou(inst, gt, 2) > 0.7
+    assert np.mean(sem[gt == 1] == FURNITURE) > 0.9
+    assert np.mean(sem[gt == 2] == OBJECT) > 0.9

@@ -15,10 +15,14 @@ import numpy as np
 
 from psimap.transforms import PIXEL_CENTER
 
-# The class table written to labels.json: stuff first, then the one thing class.
-FLOOR, WALL, CEILING, SUPPORT, OBJECT = 1, 2, 3, 4, 5
+# The class table written to labels.json: stuff first, then the thing classes by size.
+FLOOR, WALL, CEILING, SUPPORT, OBJECT, FURNITURE = 1, 2, 3, 4, 5, 6
 CLASS_TABLE = ((FLOOR, "floor", False), (WALL, "wall", False), (CEILING, "ceiling", False),
-               (SUPPORT, "support", False), (OBJECT, "object", True))
+               (SUPPORT, "support", False), (OBJECT, "object", True), (FURNITURE, "furniture", True))
+# A cluster wider or taller than this (m, along up or across it) is `furniture`, not an `object`: a
+# chair, a cabinet front, a stool; the export keeps furniture static (exporters.physics.STATIC_CLASSES)
+# and weighs it like furniture, so a 2 m cabinet front is not a 400 kg rigid body that tips over.
+FURNITURE_EXTENT = 0.6
 STUFF_NAMES = {FLOOR: "floor", WALL: "wall", CEILING: "ceiling", SUPPORT: "support"}
 
 # A plane is horizontal / vertical when its normal is within this angle of up / of the horizon:
@@ -45,6 +49,25 @@ class SegmentParams:
     colour_edge: float = 0.0          # RGB step (0..1, Euclidean) that separates clusters; 0 = off
     min_object_pixels: int = 0        # smaller clusters are dropped (0 = from the image size)
     slope: float = 4.0                # depth step per pixel footprint a continuous surface may have
+
+
+def large_clusters(clusters: np.ndarray, world: np.ndarray, up: np.ndarray, extent: float) -> np.ndarray:
+    """Ids [K] of the clusters [H, W] (0 = none) whose points world [H, W, 3] span more than `extent`
+    metres along up or along either horizontal axis (2nd..98th percentile, so a few stray pixels at
+    a depth edge do not make a cup furniture)."""
+    ids = np.unique(clusters[clusters > 0])
+    if len(ids) == 0:
+        return ids
+    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    basis = np.stack([up, a, np.cross(up, a)], 1)                      # [3, 3] columns: up, two horizontal
+    big = []
+    for k in ids:
+        p = world[clusters == k]
+        p = p[np.isfinite(p).all(1)] @ basis
+        if len(p) >= 3 and (np.percentile(p, 98, 0) - np.percentile(p, 2, 0)).max() > extent:
+            big.append(k)
+    return np.asarray(big, dtype=ids.dtype)
 
 
 @dataclass
@@ -604,6 +627,7 @@ def segment_frame(depth: np.ndarray, rgb: np.ndarray | None, K: np.ndarray, c2w:
     instance[:] = clusters.astype(np.uint16)
     semantic[:] = stuff
     semantic[clusters > 0] = OBJECT
+    semantic[np.isin(clusters, large_clusters(clusters, world, capture.up, FURNITURE_EXTENT))] = FURNITURE
     semantic[(semantic == 0) & (on_plane > 0)] = on_plane[(semantic == 0) & (on_plane > 0)]
     semantic[:] = fill_stuff_holes(semantic, valid, stuff)
     # a lone invalid pixel inside a labelled region takes its label: the sensor missed a speck
