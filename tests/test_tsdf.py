@@ -231,3 +231,17 @@ def test_a_depth_map_open3d_touches_no_block_of_still_fuses():
     mesh = fuse_tsdf([depth, depth], [K, K], [c2w, c2w], voxel_size=0.02)
     assert len(mesh.faces) > 100
     assert np.allclose(mesh.vertices[:, 2], 2.0, atol=0.03)
+
+
+def test_a_small_render_off_the_parameter_grid_still_derives_parameters():
+    """The 7-Scenes chess export crashed (IndexError in a percentile of no points): derive_params
+    samples every (min(H, W) // 32)-th pixel, and a small instance's render held depth on none of
+    them. The frame's own pixels are used then."""
+    h, w = 240, 320
+    K = np.array([[250.0, 0, 160], [0, 250.0, 120], [0, 0, 1]])
+    depth = np.zeros((h, w), np.float32)
+    depth[101:106, 201:206] = 1.5                     # 25 pixels, none on the 7-pixel grid
+    params = derive_params([depth], [K], [np.eye(4)])
+    assert params.voxel_size > 0 and np.isfinite(params.voxel_size)
+    mesh = fuse_tsdf([depth, depth], [K, K], [np.eye(4), np.eye(4)], voxel_size=0.005)
+    assert len(mesh.faces) > 0

@@ -46,7 +46,11 @@ def derive_params(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: 
         if not np.any(d > 0):
             continue
         foot.append(_pixel_footprint(d, K))
-        pts.append(depth_to_world(d, K, c2w, stride=max(1, min(d.shape) // 32))[0])
+        sample = depth_to_world(d, K, c2w, stride=max(1, min(d.shape) // 32))[0]
+        if len(sample) == 0:
+            # a small instance's render can miss every pixel of the coarse grid: take all of them
+            sample = depth_to_world(d, K, c2w)[0]
+        pts.append(sample)
         all_d.append(d[d > 0][:: max(1, int(np.count_nonzero(d > 0)) // 2000)])
     if not foot:
         raise PsimapError("TSDF fusion: no frame has valid depth")
