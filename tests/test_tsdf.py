@@ -240,7 +240,7 @@ def test_a_small_render_off_the_parameter_grid_still_derives_parameters():
     h, w = 240, 320
     K = np.array([[250.0, 0, 160], [0, 250.0, 120], [0, 0, 1]])
     depth = np.zeros((h, w), np.float32)
-    depth[101:106, 201:206] = 1.5                     # 25 pixels, none on the 7-pixel grid
+    depth[99:105, 197:203] = 1.5                      # 36 pixels, none on the 7-pixel grid
     params = derive_params([depth], [K], [np.eye(4)])
     assert params.voxel_size > 0 and np.isfinite(params.voxel_size)
     mesh = fuse_tsdf([depth, depth], [K, K], [np.eye(4), np.eye(4)], voxel_size=0.005)
