@@ -200,8 +200,6 @@ def colour_returns(sweeps: list[Sweep], frames) -> tuple[np.ndarray, np.ndarray]
     the first training frame that sees it (in view, and not behind the frame's own observed depth
     where it has one); a return no camera sees is grey at its intensity, so the prior's grey channel
     still separates bright and dark materials."""
-    from psimap.transforms import camera_to_pixels, transform_points
-
     pts = np.concatenate([s.points for s in sweeps]) if sweeps else np.zeros((0, 3))
     inten = np.concatenate([s.intensity for s in sweeps]) if sweeps else np.zeros(0, np.float32)
     cols = np.repeat(inten[:, None], 3, 1).astype(np.float32)
@@ -210,36 +208,34 @@ def colour_returns(sweeps: list[Sweep], frames) -> tuple[np.ndarray, np.ndarray]
         if not todo.any():
             break
         idx = np.flatnonzero(todo)
-        cam = transform_points(pts[idx], np.linalg.inv(fr.c2w))
-        K = fr.K.numpy().astype(np.float64)
-        ok = cam[:, 2] > 1e-3
-        u, v = camera_to_pixels(cam[ok, 0], cam[ok, 1], cam[ok, 2], K)
-        ui, vi = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
-        inside = (ui >= 0) & (ui < fr.width) & (vi >= 0) & (vi < fr.height)
-        sel = np.flatnonzero(ok)[inside]
-        ui, vi = ui[inside], vi[inside]
+        sel, ui, vi, z = in_view(pts[idx], fr)
         d = fr.depth.numpy()[vi, ui]
         # an occluded return (behind the observed surface by more than a few cm) keeps looking
-        visible = (d <= 0) | (cam[sel, 2] <= d * 1.03 + 0.02)
+        visible = (d <= 0) | (z <= d * 1.03 + 0.02)
         sel, ui, vi = sel[visible], ui[visible], vi[visible]
         cols[idx[sel]] = fr.rgb.numpy()[vi, ui]
         todo[idx[sel]] = False
     return pts, cols
 
 
+def in_view(points: np.ndarray, fr) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The points [P, 3] (world) a training frame sees: (indices [M], pixel column [M], row [M],
+    depth along its optical axis [M]), nearest pixel, in front of the camera and inside the image."""
+    from psimap.transforms import camera_to_pixels, transform_points
+
+    cam = transform_points(points, np.linalg.inv(fr.c2w))
+    ok = np.flatnonzero(cam[:, 2] > 1e-3)
+    u, v = camera_to_pixels(cam[ok, 0], cam[ok, 1], cam[ok, 2], fr.K.numpy().astype(np.float64))
+    ui, vi = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
+    inside = (ui >= 0) & (ui < fr.width) & (vi >= 0) & (vi < fr.height)
+    return ok[inside], ui[inside], vi[inside], cam[ok[inside], 2]
+
+
 def depths_in_frames(sweeps: list[Sweep], frames) -> np.ndarray:
     """Depths [M] (along each frame's optical axis) of the returns in view of the frames: what the
     cameras would have measured, for a capture without depth images."""
-    from psimap.transforms import camera_to_pixels, transform_points
-
     pts = np.concatenate([s.points for s in sweeps])
-    out = []
-    for fr in frames:
-        cam = transform_points(pts, np.linalg.inv(fr.c2w))
-        ok = cam[:, 2] > 1e-3
-        u, v = camera_to_pixels(cam[ok, 0], cam[ok, 1], cam[ok, 2], fr.K.numpy().astype(np.float64))
-        inside = (u > -0.5) & (u < fr.width - 0.5) & (v > -0.5) & (v < fr.height - 0.5)
-        out.append(cam[ok, 2][inside])
+    out = [in_view(pts, fr)[3] for fr in frames]
     return np.concatenate(out) if out else np.zeros(0)
 
 
