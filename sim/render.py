@@ -177,9 +177,9 @@ def draw(job: dict) -> dict[str, np.ndarray]:
 
     # light that never adds up past white: a clipped face loses its tint's hue (the writers' headlight
     # plus a sun take a lit top face to 1.7x its colour)
-    model.vis.headlight.ambient[:], model.vis.headlight.diffuse[:] = 0.4, 0.3
+    model.vis.headlight.ambient[:], model.vis.headlight.diffuse[:] = 0.45, 0.35
     model.vis.headlight.specular[:] = 0.0
-    model.light_diffuse[:], model.light_specular[:], model.light_ambient[:] = 0.3, 0.0, 0.0
+    model.light_diffuse[:], model.light_specular[:], model.light_ambient[:] = 0.2, 0.0, 0.0
     w, h, s = int(job["width"]), int(job["height"]), int(job.get("thumb_px", 0))
     model.vis.global_.offwidth, model.vis.global_.offheight = max(w, s), max(h, s)
     opt = mujoco.MjvOption()             # groups 0-2 shown: floor, visuals; 3 (colliders) hidden
