@@ -7,6 +7,7 @@ import json
 import os
 import shutil
 import subprocess
+from dataclasses import replace
 from html.parser import HTMLParser
 
 import numpy as np
@@ -32,12 +33,18 @@ def _objects():
 
 
 @pytest.fixture(scope="module")
-def pinned_export(tmp_path_factory):
+def objects():
+    """_objects(), built once (export_scene decides roles on copies)."""
+    return _objects()
+
+
+@pytest.fixture(scope="module")
+def pinned_export(tmp_path_factory, objects):
     """An export whose ball is pinned by the settle check (report, folder)."""
     from psimap.exporters.pipeline import export_scene
 
     out = tmp_path_factory.mktemp("prev") / "pinned"
-    return export_scene(_objects(), out, "mjcf"), out
+    return export_scene(objects, out, "mjcf"), out
 
 
 def _halves(png) -> tuple[np.ndarray, np.ndarray]:
@@ -83,7 +90,7 @@ def test_export_pictures_are_tinted_by_role(pinned_export):
     assert not (out / ".preview").exists() and not (out / ".check").exists()
 
 
-def test_the_pixels_of_each_body_carry_its_role_tint(tmp_path):
+def test_the_pixels_of_each_body_carry_its_role_tint(objects, tmp_path):
     """Per body (MuJoCo's segmentation of the same shot): its pixels have its role's chromaticity."""
     from psimap.exporters.formats import ExportScene
     from psimap.exporters.mjcf import write_mjcf
@@ -91,7 +98,7 @@ def test_the_pixels_of_each_body_carry_its_role_tint(tmp_path):
     from psimap.exporters.preview import TINTS, role, start_preview
     from psimap.exporters.roles import Reason
 
-    objs = [o for o in _objects()]
+    objs = [replace(o) for o in objects]
     assign_roles(objs)
     objs[2].make_static(Reason.UNSTABLE, "moved")
     scene = ExportScene(tuple(objs), None, 0.0)
@@ -111,13 +118,13 @@ def test_the_pixels_of_each_body_carry_its_role_tint(tmp_path):
         assert np.argmax(colour) == np.argmax(np.asarray(o.vertex_rgb).mean(0)), (o.name, colour)
 
 
-def test_after_panel_shows_the_settle(tmp_path):
+def test_after_panel_shows_the_settle(objects, tmp_path):
     """Not pinned, the ball falls in the check: the after panel has it lower (its pixels moved down
     the picture), the box and the cabinet stay where they were."""
     from psimap.exporters.pipeline import export_scene
     from psimap.exporters.preview import TINTS
 
-    r = export_scene(_objects(), tmp_path / "e", "usd", pin_unstable=False)
+    r = export_scene(objects, tmp_path / "e", "usd", pin_unstable=False)
     assert not r["check"]["passed"] and r["check"]["fell"]["ball_3"] > 0.03
     before, after = _halves(tmp_path / "e" / "preview.png")
     ball_b, ball_a = (_near(h, TINTS["dynamic"][0]) for h in (before, after))
@@ -133,7 +140,7 @@ def test_after_panel_shows_the_settle(tmp_path):
     assert sorted(p.name for p in (tmp_path / "e").iterdir() if p.suffix in (".xml", ".usda")) == ["scene.usda"]
 
 
-def test_backend_fallback_and_no_opengl(tmp_path, monkeypatch):
+def test_backend_fallback_and_no_opengl(objects, tmp_path, monkeypatch):
     """MUJOCO_GL naming a backend that cannot start here (glx without a display) falls back to EGL /
     OSMesa; with OpenGL off the export still succeeds: no preview.png, one reason, the page is there."""
     from psimap.exporters.pipeline import export_scene
@@ -143,12 +150,12 @@ def test_backend_fallback_and_no_opengl(tmp_path, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.setenv("MUJOCO_GL", "glx")
     assert backends() == ["glx", "egl", "osmesa"]
-    r = export_scene(_objects()[:1], tmp_path / "a", "mjcf", check=False)
+    r = export_scene(objects[:1], tmp_path / "a", "mjcf", check=False)
     assert r["preview"]["renderer"] in ("egl", "osmesa")
     assert (tmp_path / "a" / "preview.png").is_file()
     monkeypatch.setenv("MUJOCO_GL", "off")
     with pytest.warns(PreviewWarning, match="MUJOCO_GL=off"):
-        r = export_scene(_objects()[:1], tmp_path / "b", "mjcf")
+        r = export_scene(objects[:1], tmp_path / "b", "mjcf")
     assert r["preview"]["image"] is None and "OpenGL" in r["preview"]["reason"]
     assert r["check"]["passed"] and not (tmp_path / "b" / "preview.png").exists()
     assert "no preview: no offscreen OpenGL" in (tmp_path / "b" / "report.html").read_text()
