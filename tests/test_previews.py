@@ -235,9 +235,9 @@ def test_report_html_in_headless_chromium(pinned_export, tmp_path):
     # the test's probe: a copy of the page whose script marks every image that loaded (naturalWidth)
     shutil.copytree(out, out.parent / "probe_dir")
     probe = out.parent / "probe_dir" / "probe.html"
-    probe.write_text(html.replace("</body>", "<script>for (const i of document.images) i.setAttribute("
-                                   "'data-loaded', i.complete ? i.naturalWidth + 'x' + i.naturalHeight : 'no');"
-                                   "</script></body>"))
+    probe.write_text(html.replace("</body>", "<script>addEventListener('load', () => {for (const i of "
+                                   "document.images) i.setAttribute('data-loaded', i.complete ? i.naturalWidth "
+                                   "+ 'x' + i.naturalHeight : 'no');});</script></body>"))
     dom = _chromium(["--virtual-time-budget=3000", "--dump-dom", probe.as_uri()], tmp_path).stdout
     rows = _Rows()
     rows.feed(dom)
