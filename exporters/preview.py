@@ -42,10 +42,11 @@ def role(obj) -> str:
     return "pinned" if obj.reason is Reason.UNSTABLE else "static"
 
 
-def start_preview(scene, xml, out_npz, settled: dict | None):
+def start_preview(scene, xml, out_npz, settled: dict | None, *, labels: bool = False):
     """Start drawing `scene` (ExportScene, roles final) from the MJCF at `xml` (written for it, the
-    settle check's); `settled`: the check's poses after the settle (None: no check, one view).
-    Returns a psimap.sim.render.PendingRender."""
+    settle check's); `settled`: the check's poses after the settle (None: no check, one view);
+    labels: also which object each pixel of a view shows (`<view>_body`). Returns a
+    psimap.sim.render.PendingRender."""
     from psimap.sim.render import start_render
 
     views = [{"name": "before", "poses": None}]
@@ -54,7 +55,7 @@ def start_preview(scene, xml, out_npz, settled: dict | None):
     job = {"tint": {o.name: TINTS[role(o)][0] for o in scene.objects},
            "sink": {"floor": FLOOR_SINK_M} if scene.background is not None else {},
            "views": views, "width": VIEW_PX[0], "height": VIEW_PX[1], "thumb_px": 2 * THUMB_PX,
-           "azimuth": AZIMUTH, "elevation": ELEVATION}
+           "azimuth": AZIMUTH, "elevation": ELEVATION, "labels": labels}
     return start_render(xml, job, out_npz)
 
 

@@ -103,7 +103,7 @@ def test_the_pixels_of_each_body_carry_its_role_tint(objects, tmp_path):
     objs[2].make_static(Reason.UNSTABLE, "moved")
     scene = ExportScene(tuple(objs), None, 0.0)
     xml = write_mjcf(scene, tmp_path)
-    arrays, how = start_preview(scene, xml, tmp_path / "p.npz", None).result()
+    arrays, how = start_preview(scene, xml, tmp_path / "p.npz", None, labels=True).result()
     assert arrays is not None, how
     assert [role(o) for o in objs] == ["dynamic", "static", "pinned"]
     for i, o in enumerate(objs):
