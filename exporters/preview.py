@@ -73,7 +73,8 @@ def finish_preview(pending, scene, check: dict | None, out_dir) -> tuple[dict, d
     save_png(image, out_dir / "preview.png")
     thumbs = {}
     for i, name in enumerate(arrays["bodies"]):
-        thumbs[str(name)] = png_bytes(thumbnail(arrays[f"thumb_{i}"], arrays[f"thumb_{i}_mask"]))
+        if f"thumb_{i}" in arrays:      # (none for a body without a visual mesh)
+            thumbs[str(name)] = png_bytes(thumbnail(arrays[f"thumb_{i}"], arrays[f"thumb_{i}_mask"]))
     return {"image": "preview.png", "renderer": how, "view_px": list(VIEW_PX), "thumbnail_px": THUMB_PX}, thumbs
 
 

@@ -5,20 +5,22 @@ mujoco is first imported, and the export's settle check has imported it already 
 glfw, which needs a display; setting MUJOCO_GL for the whole process would also decide PyOpenGL's
 platform for the user's own code). A child started with MUJOCO_GL=egl, or osmesa when EGL fails,
 renders whatever the parent did, and a GL driver that crashes costs the picture, never the export.
-Measured on the demo export (14 objects, 2 CPU cores, Mesa llvmpipe): a child that imports mujoco
-and creates an EGL context costs about 0.3 s before its first picture.
+Measured on the demo export (14 objects, 2 busy CPU cores, Mesa's llvmpipe): the child costs about
+1.0 s of CPU (0.15 s importing mujoco, 0.3 s loading the model, 0.5 s drawing), overlapped with the
+writers (exporters/pipeline.py).
 
     start_render(xml, job, out_npz) -> PendingRender;  .result() -> (arrays | None, backend or why not)
 
 The job (plain JSON): `tint` {body name: [r, g, b]} (the bodies pictured: their visual geoms,
-group 2, drawn flat in that colour in the scene views), `hide` [geom names] (left out of every
-picture), `sink` {geom name: metres} (drawn that much lower: a floor plane under a reconstructed
-floor that lies on it, which would show through in patches), `views` [{name, poses: {body: [x, y, z, qw, qx, qy, qz]} of free bodies or null (as the
-file has them)}], `width` / `height` of a view, `thumb_px` (side of each body's own picture; 0 =
-none), `azimuth` / `elevation` (degrees). The camera frames the tinted bodies' boxes as they stand
-in the first view. The arrays (.npz): per view `<name>` [H, W, 3] uint8 and `<name>_body` [H, W]
-int16 (index into `bodies`, -1 for anything else; only with `labels` true), per body `thumb_<i>` [S, S, 3] uint8 (that body
-alone, in its own materials) and `thumb_<i>_mask` [S, S] bool, and `bodies` (names).
+group 2, drawn flat in that colour in the scene views), `sink` {geom name: metres} (drawn that much
+lower: a floor plane under a reconstructed floor lying on it would show through in patches),
+`views` [{name, poses: {body: [x, y, z, qw, qx, qy, qz]} of free bodies, or null: as the file has
+them}], `width` / `height` of a view, `thumb_px` (side of each body's own picture; 0 = none),
+`azimuth` / `elevation` (degrees), `labels` (bool). The camera frames the tinted bodies' box as
+they stand in the first view. The arrays (.npz): per view `<name>` [H, W, 3] uint8 (and, with
+`labels`, `<name>_body` [H, W] int16: index into `bodies`, -1 for anything else), per body
+`thumb_<i>` [S, S, 3] uint8 (that body alone, in its own materials) and `thumb_<i>_mask` [S, S]
+bool, and `bodies` (names).
 """
 from __future__ import annotations
 
@@ -162,10 +164,6 @@ def draw(job: dict) -> dict[str, np.ndarray]:
     body_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in names]
     visual = {b: [g for g in range(model.ngeom) if model.geom_bodyid[g] == b and model.geom_group[g] == 2]
               for b in body_ids}
-    hidden = [g for g in (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in job.get("hide", []))
-              if g >= 0]
-    group0 = model.geom_group.copy()
-    group0[hidden] = 5                   # a group the pictures never show
     for n, dz in job.get("sink", {}).items():
         g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n)
         if g >= 0 and model.geom_bodyid[g] == 0:
@@ -207,7 +205,6 @@ def draw(job: dict) -> dict[str, np.ndarray]:
         np.stack([model.stat.center - model.stat.extent / 2, model.stat.center + model.stat.extent / 2])
     cam = _framing(model, everything, w / h, az, el)
     with mujoco.Renderer(model, h, w) as r:
-        model.geom_group[:] = group0
         for b, name in zip(body_ids, names):
             for g in visual[b]:
                 model.geom_matid[g] = -1
@@ -222,7 +219,9 @@ def draw(job: dict) -> dict[str, np.ndarray]:
         _set_poses(model, data, views[0]["poses"] if views else None)
         with mujoco.Renderer(model, s, s) as r:
             for i, b in enumerate(body_ids):
-                model.geom_group[:] = 5          # this body's visual geoms alone
+                if not visual[b]:
+                    continue
+                model.geom_group[:] = 5          # this body's visual geoms alone (5: a group never shown)
                 model.geom_group[visual[b]] = 2
                 rgb, who = shot(r, _framing(model, _geom_boxes(model, data, visual[b]), 1.0, az, el + 5.0))
                 out[f"thumb_{i}"], out[f"thumb_{i}_mask"] = rgb, who == i
