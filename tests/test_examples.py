@@ -128,3 +128,52 @@ def test_policy_env_script_runs_on_an_export(policy):
     bad = subprocess.run([sys.executable, str(ROOT / "examples" / "policy_env.py"), str(export), "--object", "nope"],
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "no dynamic object 'nope'" in bad.stderr
+
+
+# ---------------------------------------------------------------- examples/objects_api.py
+
+@pytest.fixture(scope="module")
+def table_checkpoint(ring_checkpoint):
+    """A floor, a static table and a box on it, seen by a ring of cameras (seconds to make)."""
+    import trimesh
+
+    from psimap.data.frames import ClassInfo
+
+    floor = trimesh.creation.box(extents=[1.4, 1.4, 0.02]).apply_translation([0, 0, -0.01])
+    table = trimesh.creation.box(extents=[0.6, 0.4, 0.3]).apply_translation([-0.1, 0, 0.15])
+    box = trimesh.creation.box(extents=[0.16, 0.1, 0.12]).apply_translation([0.35, 0.1, 0.06])
+    return ring_checkpoint([floor, table, box], [0, 3, 7], [1, 2, 3],
+                           [ClassInfo(1, "floor", False), ClassInfo(2, "table", True), ClassInfo(3, "box", True)],
+                           colors=[(0.5, 0.5, 0.5), (0.6, 0.4, 0.2), (0.9, 0.1, 0.1)], target=[0.1, 0.05, 0.1])
+
+
+def test_objects_api_example_prints_every_object_and_saves_one(table_checkpoint, tmp_path):
+    import trimesh
+
+    out = tmp_path / "objs"
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / "objects_api.py"), str(table_checkpoint),
+                        "--out", str(out), "--completion", "none"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = {ln.split()[0]: ln.split() for ln in r.stdout.splitlines()[3:] if ln.strip() and not ln.startswith("saved")}
+    assert set(rows) == {"table_3", "box_7"}, r.stdout
+    assert rows["table_3"][1:3] == ["table", "static"] and rows["box_7"][1:3] == ["box", "dynamic"]
+    mass = float(rows["box_7"][3])
+    assert 0.5 * 0.16 * 0.1 * 0.12 * 200 < mass < 1.6 * 0.16 * 0.1 * 0.12 * 200          # volume x box density
+    assert "saved box_7" in r.stdout                    # the first dynamic object, by default
+    mesh = trimesh.load(out / "box_7.obj", process=False, force="mesh")
+    np.testing.assert_allclose(mesh.bounds.mean(0)[:2], [0.35, 0.1], atol=0.02)         # world frame, metres
+    collider = trimesh.load(out / "box_7_collider.obj", process=False, force="mesh")
+    # the collider encloses the visual mesh it was fitted to, within the error the table prints
+    assert collider.is_watertight and 0.8 < collider.volume / mesh.convex_hull.volume < 1.25
+    err = float(rows["box_7"][-2]) / 1000
+    np.testing.assert_allclose(collider.bounds, mesh.bounds, atol=err + 1e-3)
+    phys = json.loads((out / "box_7.json").read_text())
+    assert phys["mass_kg"] == pytest.approx(mass, abs=1e-3) and phys["role"] == "dynamic"
+    # the folder is psimap's output now: a second run replaces it; a folder of the user's is refused
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    bad = subprocess.run([sys.executable, str(ROOT / "examples" / "objects_api.py"), str(table_checkpoint),
+                          "--out", str(tmp_path / "mine"), "--completion", "none", "--save", "table_3"],
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "objects_api:" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
