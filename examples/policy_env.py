@@ -167,7 +167,7 @@ class PolicyEnv(_Base):
                  grip_force: float = GRIP_FORCE, jitter: float = 0.02, push_distance: float = 0.08):
         xml = Path(export_dir) / "scene.xml"
         if not xml.is_file():
-            raise SystemExit(f"no scene.xml in {export_dir} (give a `psimap export` folder)")
+            raise ValueError(f"no scene.xml in {export_dir} (give a `psimap export` folder)")
         spec = mujoco.MjSpec.from_file(str(xml))
         self.home_model = spec.compile()            # the export as written: the object placements
         home = mujoco.MjData(self.home_model)
@@ -175,11 +175,11 @@ class PolicyEnv(_Base):
         free = [int(self.home_model.jnt_bodyid[j]) for j in range(self.home_model.njnt)
                 if self.home_model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
         if not free:
-            raise SystemExit(f"{xml} has no dynamic object (no freejoint)")
+            raise ValueError(f"{xml} has no dynamic object (no freejoint)")
         self.objects = [mujoco.mj_id2name(self.home_model, mujoco.mjtObj.mjOBJ_BODY, b) for b in free]
         names = {n: b for n, b in zip(self.objects, free)}
         if target is not None and target not in names:
-            raise SystemExit(f"no dynamic object {target!r} in {xml} (have: {', '.join(self.objects)})")
+            raise ValueError(f"no dynamic object {target!r} in {xml} (have: {', '.join(self.objects)})")
         self.target = target or self._central_object(home, names)
         park = self._park(home, names[self.target])
         add_gripper(spec, park, grip_force)
@@ -205,6 +205,7 @@ class PolicyEnv(_Base):
         self.camera = camera if camera is not None else (
             "overview" if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, "overview") >= 0 else None)
         self._renderer = None
+        self.render_mode = "rgb_array"
         self.yaw = 0.0
         self.steps = 0
         self.task: Task | None = None
@@ -492,7 +493,10 @@ def main(argv=None) -> int:
         print(f"built a table-top export in {time.perf_counter() - t0:.1f} s: {export}")
     else:
         export = Path(args.export)
-    env = PolicyEnv(export, target=args.object, max_steps=args.steps, image=False)
+    try:
+        env = PolicyEnv(export, target=args.object, max_steps=args.steps, image=False)
+    except ValueError as e:
+        sys.exit(f"policy_env: {e}")
     m = env.model
     print(f"{len(env.objects)} dynamic objects, gripper added; {m.nbody} bodies, {m.ngeom} geoms, "
           f"{m.nu} actuators; gymnasium: {'yes' if spaces is not None else 'no (plain API)'}")
@@ -515,6 +519,7 @@ def main(argv=None) -> int:
     if args.image:
         from PIL import Image
 
+        env.close()                         # a renderer of the new size
         env.width, env.height = 640, 480
         Image.fromarray(env.render()).save(args.image)
         print(f"image: {args.image}")

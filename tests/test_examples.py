@@ -177,3 +177,20 @@ def test_objects_api_example_prints_every_object_and_saves_one(table_checkpoint,
                          capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "objects_api:" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
     assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
+
+
+def test_policy_env_camera_image(policy):
+    """The optional camera image: the export's `overview` camera through mujoco.Renderer (EGL, chosen
+    before mujoco was imported); skipped where no offscreen OpenGL exists."""
+    P, export = policy
+    env = P.PolicyEnv(export, image=True, width=96, height=72)
+    try:
+        obs, _ = env.reset(seed=0)
+    except Exception as e:                  # no EGL on this machine
+        pytest.skip(f"no offscreen rendering here: {type(e).__name__}: {e}")
+    img = obs["image"]
+    assert env.camera == "overview" and img.shape == (72, 96, 3) and img.dtype == np.uint8
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50                  # a scene, not a blank frame
+    obs, *_ = env.step([1, 0, 0, 0, -1])
+    assert obs["image"].shape == (72, 96, 3)
+    env.close()
