@@ -116,15 +116,21 @@ def test_grasp_lifts_the_light_box_and_the_heavy_twin_slips(policy):
     assert heavy["lift"] < 0.01, heavy
 
 
-def test_policy_env_script_runs_on_an_export(policy):
+def test_policy_env_script_runs_on_an_export(policy, tmp_path):
     """`python examples/policy_env.py EXPORT_DIR --steps N` as a user runs it (headless)."""
     _, export = policy
+    png = tmp_path / "env.png"
     r = subprocess.run([sys.executable, str(ROOT / "examples" / "policy_env.py"), str(export), "--steps", "300",
-                        "--seeds", "2", "--object", "can_4", "--grasp", "box_2"],
+                        "--seeds", "2", "--object", "can_4", "--grasp", "box_2", "--image", str(png)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "reset seed 1: min contact dist" in r.stdout and "push can_4 8 cm" in r.stdout
     assert "grasp box_2 (0.224 kg" in r.stdout
+    if "no image" not in r.stdout:          # offscreen GL (EGL, chosen before mujoco's import) present
+        from PIL import Image
+
+        img = np.asarray(Image.open(png).convert("RGB"))
+        assert img.shape == (480, 640, 3) and len(np.unique(img.reshape(-1, 3), axis=0)) > 50
     bad = subprocess.run([sys.executable, str(ROOT / "examples" / "policy_env.py"), str(export), "--object", "nope"],
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "no dynamic object 'nope'" in bad.stderr
@@ -147,6 +153,7 @@ def table_checkpoint(ring_checkpoint):
                            colors=[(0.5, 0.5, 0.5), (0.6, 0.4, 0.2), (0.9, 0.1, 0.1)], target=[0.1, 0.05, 0.1])
 
 
+@pytest.mark.slow
 def test_objects_api_example_prints_every_object_and_saves_one(table_checkpoint, tmp_path):
     import trimesh
 
@@ -179,18 +186,21 @@ def test_objects_api_example_prints_every_object_and_saves_one(table_checkpoint,
     assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
 
 
+
 def test_policy_env_camera_image(policy):
-    """The optional camera image: the export's `overview` camera through mujoco.Renderer (EGL, chosen
-    before mujoco was imported); skipped where no offscreen OpenGL exists."""
-    P, export = policy
-    env = P.PolicyEnv(export, image=True, width=96, height=72)
-    try:
-        obs, _ = env.reset(seed=0)
-    except Exception as e:                  # no EGL on this machine
-        pytest.skip(f"no offscreen rendering here: {type(e).__name__}: {e}")
-    img = obs["image"]
-    assert env.camera == "overview" and img.shape == (72, 96, 3) and img.dtype == np.uint8
-    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50                  # a scene, not a blank frame
-    obs, *_ = env.step([1, 0, 0, 0, -1])
-    assert obs["image"].shape == (72, 96, 3)
-    env.close()
+    """The optional camera image in the observation: the export's `overview` camera through
+    mujoco.Renderer, in a fresh interpreter (MuJoCo picks its GL backend at its first import: the
+    example chooses EGL before it; a test process may have imported mujoco earlier without it)."""
+    _, export = policy
+    code = (f"import sys; sys.path.insert(0, {str(ROOT / 'examples')!r}); import numpy as np, policy_env as P\n"
+            f"env = P.PolicyEnv({str(export)!r}, image=True, width=96, height=72)\n"
+            "try:\n    obs, _ = env.reset(seed=0)\nexcept Exception as e:\n    print('no image', e); sys.exit(0)\n"
+            "img = obs['image']; obs2 = env.step([1, 0, 0, 0, -1])[0]\n"
+            "print(env.camera, img.shape, img.dtype, len(np.unique(img.reshape(-1, 3), axis=0)), obs2['image'].shape)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    if r.stdout.startswith("no image"):
+        pytest.skip(f"no offscreen rendering here: {r.stdout.strip()}")
+    camera, shape, dtype, colours, shape2 = r.stdout.replace(", ", ",").split()
+    assert camera == "overview" and shape == shape2 == "(72,96,3)" and dtype == "uint8"
+    assert int(colours) > 50                                              # a scene, not a blank frame
