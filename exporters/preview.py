@@ -24,7 +24,6 @@ TINTS = {
 }
 VIEW_PX = (800, 600)        # width, height of each of the two scene views
 THUMB_PX = 96               # report.html's thumbnails (drawn at twice this size, then shrunk)
-AZIMUTH, ELEVATION = 135.0, -35.0
 # the floor plane under a background whose own floor lies on it is drawn this much lower, so that
 # the reconstructed floor wins the depth test and the plane only fills its holes
 FLOOR_SINK_M = 0.02
@@ -47,6 +46,7 @@ def start_preview(scene, xml, out_npz, settled: dict | None, *, labels: bool = F
     settle check's); `settled`: the check's poses after the settle (None: no check, one view);
     labels: also which object each pixel of a view shows (`<view>_body`). Returns a
     psimap.sim.render.PendingRender."""
+    from psimap.exporters.mjcf import CAMERA_AZIMUTH, CAMERA_ELEVATION
     from psimap.sim.render import start_render
 
     views = [{"name": "before", "poses": None}]
@@ -55,7 +55,8 @@ def start_preview(scene, xml, out_npz, settled: dict | None, *, labels: bool = F
     job = {"tint": {o.name: TINTS[role(o)][0] for o in scene.objects},
            "sink": {"floor": FLOOR_SINK_M} if scene.background is not None else {},
            "views": views, "width": VIEW_PX[0], "height": VIEW_PX[1], "thumb_px": 2 * THUMB_PX,
-           "azimuth": AZIMUTH, "elevation": ELEVATION, "labels": labels}
+           # the side scene.xml's own free camera looks from (exporters.mjcf), framed tighter here
+           "azimuth": CAMERA_AZIMUTH, "elevation": CAMERA_ELEVATION, "labels": labels}
     return start_render(xml, job, out_npz)
 
 

@@ -13,15 +13,26 @@ from psimap import scene
 class Scene(scene.Scene):
     """A trained scene (`psimap.scene.Scene`) with its per-object assets one call away."""
 
-    def objects(self, up: str = "auto", **kw):
+    def objects(self, up: str = "auto", *, static_classes=None, min_coverage: float | None = None, **kw):
         """Per-object meshes, metres, in the gravity-aligned world frame (Z-up: the capture turned by
         the rotation `up` gives, psimap.exporters.pipeline.gravity_aligned; "+z" keeps the capture's
-        frame as it is). psimap.exporters.objects.extract_objects does the work."""
+        frame as it is). psimap.exporters.objects.extract_objects does the work.
+
+        Each SceneObject carries its mesh, collider (`collision`), mass properties (`physics`) and
+        class (`label`), and the role the export gives it by the same rules
+        (exporters.pipeline.assign_roles): static for a static class (static_classes: None = the
+        default furniture list, exporters.physics.STATIC_CLASSES) or an object seen less than
+        `min_coverage` (None = the export's MIN_COVERAGE), dynamic otherwise. Only the export's
+        settle check can still pin an object static (its report.json says which)."""
         from psimap.exporters.objects import extract_objects
-        from psimap.exporters.pipeline import gravity_aligned
+        from psimap.exporters.pipeline import MIN_COVERAGE, assign_roles, gravity_aligned
+        from psimap.exporters.roles import Reason, Role
 
         scene, _ = gravity_aligned(self, up)
-        return extract_objects(scene, **kw)
+        objs = extract_objects(scene, static_classes=static_classes, **kw)
+        assign_roles([o for o in objs if o.role is not Role.SKIPPED and o.reason is not Reason.ENVIRONMENT],
+                     static_classes, MIN_COVERAGE if min_coverage is None else min_coverage)
+        return objs
 
 
 def predicted_objects(path, up: str = "auto", *, completion: str = "auto", progress: bool = False) -> list:

@@ -73,11 +73,12 @@ def test_mjcf_structure(objects, tmp_path):
     root = ET.parse(tmp_path / "m" / "scene.xml").getroot()
     body = [b for b in root.iter("body") if b.get("name") == "can_2"][0]
     assert body.find("freejoint") is not None and body.find("inertial") is not None
-    vis = [g for g in body.iter("geom") if g.get("name") == "can_2_visual"][0]
-    assert (vis.get("group"), vis.get("contype"), vis.get("conaffinity"), vis.get("density")) == ("2", "0", "0", "0")
-    col = [g for g in body.iter("geom") if g.get("group") == "3"]
-    assert len(col) == 1 and col[0].get("type") == "cylinder"
+    assert [(g.get("name"), g.get("class")) for g in body.iter("geom")] == [
+        ("can_2_visual", "visual"), ("can_2_collision_0", "collision")]
     m = mujoco.MjModel.from_xml_path(str(tmp_path / "m" / "scene.xml"))
+    vis, col = (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("can_2_visual", "can_2_collision_0"))
+    assert (m.geom_group[vis], m.geom_contype[vis], m.geom_conaffinity[vis]) == (2, 0, 0)
+    assert m.geom_group[col] == 3 and m.geom_type[col] == mujoco.mjtGeom.mjGEOM_CYLINDER
     bid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "can_2")
     assert m.body_mass[bid] == pytest.approx(np.pi * 0.04**2 * 0.14 * 900.0, rel=0.03)   # 24-gon < circle
     # visual mesh lands where the object is (MuJoCo recentres meshes; the geom frame compensates)

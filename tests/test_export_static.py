@@ -54,7 +54,11 @@ def test_static_furniture_exported_static(objects, tmp_path):
     r = export_scene(objects, tmp_path / "s", ["mjcf", "usd"])
     b = _bodies(tmp_path / "s" / "scene.xml")
     assert b["table_1"].find("freejoint") is None and b["table_1"].find("inertial") is None
-    assert [g.get("group") for g in b["table_1"].iter("geom") if g.get("group") == "3"] == ["3"]
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_path(str(tmp_path / "s" / "scene.xml"))     # groups come from classes
+    table = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "table_1")
+    assert [int(m.geom_group[g]) for g in range(m.ngeom) if m.geom_bodyid[g] == table] == [2, 3]
     assert b["box_2"].find("freejoint") is not None and b["box_2"].find("inertial") is not None
     stage = Usd.Stage.Open(str(tmp_path / "s" / "scene.usda"))
     table = stage.GetPrimAtPath("/World/table_1")
