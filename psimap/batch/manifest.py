@@ -186,5 +186,5 @@ def check_train(table: dict, at: str) -> dict:
         if want is float and isinstance(v, int) and not isinstance(v, bool):
             ok = True
         if not ok:
-            raise PsimapError(f"{at}: train.{k} = {v!r} should be a {want.__name__}")
+            raise PsimapError(f"{at}: train.{k} = {v!r} should be of type {want.__name__}")
     return dict(table)

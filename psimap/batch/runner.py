@@ -25,7 +25,7 @@ from psimap.batch.stages import DONE, MARK, STAGES, append_log, read_json
 
 SUMMARY = "summary.json"
 ALLOWED_FAILURES = 2            # a task whose worker died is run again on up to this many more workers
-CONNECT_TIMEOUT = "10s"         # for --scheduler (dask config distributed.comm.timeouts.connect if set lower)
+CONNECT_TIMEOUT = "10s"         # --scheduler: how long to try reaching it
 
 
 def check_batch_dir(out, captures) -> Path:
@@ -89,11 +89,8 @@ def connect(scheduler: str, workers: int, threads: int, log):
     if scheduler:
         if workers:
             raise PsimapError("--workers sizes a local cluster; a --scheduler's cluster has its own workers")
-        import dask
-
-        timeout = dask.config.get("distributed.comm.timeouts.connect", CONNECT_TIMEOUT)
         try:
-            client = Client(scheduler, timeout=timeout)
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
         except (OSError, TimeoutError, ValueError, TypeError) as e:
             raise PsimapError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there "
                               f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'no answer'})") from None
@@ -220,6 +217,7 @@ def capture_entry(record: dict, *, ran: bool) -> dict:
         "peak_memory_mb": max((s.get("peak_mb", 0.0) for s in st.values()), default=None),
         "stage_peak_memory_mb": {k: {"peak": s.get("peak_mb"), "above_start": s.get("delta_mb")} for k, s in st.items()},
         "threads": {k: s.get("threads") for k, s in st.items()},
+        "tasks": {k: {f: s.get(f) for f in ("worker", "started", "ended")} for k, s in st.items()},
         "things": ex.get("things"), "movable": ex.get("movable"), "dynamic": ex.get("dynamic"),
         "outcome": ex.get("outcome"), "outcome_passed": ex.get("outcome_passed"),
         "settle": ex.get("settle"),

@@ -103,6 +103,7 @@ def run_stage(stage: str, work, capture, capdir: str, threads: int, record: dict
     folder = Path(capdir)
     lines: list[str] = [f"== {stage} on {socket.gethostname()} pid {os.getpid()}, {threads} thread(s)"]
     out = io.StringIO()
+    started = time.time()
     t0 = time.perf_counter()
     with PeakMemory() as mem:
         try:
@@ -117,7 +118,8 @@ def run_stage(stage: str, work, capture, capdir: str, threads: int, record: dict
             lines.append(traceback.format_exc())
     seconds = time.perf_counter() - t0
     lines[1:1] = out.getvalue().splitlines()
-    entry = {"seconds": round(seconds, 3), "threads": threads, "worker": f"{socket.gethostname()}:{os.getpid()}",
+    entry = {"seconds": round(seconds, 3), "started": round(started, 3), "ended": round(started + seconds, 3),
+             "threads": threads, "worker": f"{socket.gethostname()}:{os.getpid()}",
              **mem.report(), **(result or {})}
     lines.append(f"== {stage}: {'failed: ' + record['error'] if record.get('error') else 'ok'} in "
                  f"{seconds:.1f} s, peak memory {entry['peak_mb']:.0f} MB (+{entry['delta_mb']:.0f} MB)")
