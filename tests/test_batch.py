@@ -101,8 +101,9 @@ def test_a_failed_capture_is_reported_and_the_others_finish(first_run, captures)
     assert not (out / "cap0" / "export" / "scene.glb").exists()
     report = json.loads((out / "renamed" / "export" / "report.json").read_text())
     assert report["gravity"]["source"] == "given" and report["format"] == ["glb", "mjcf"]
-    ckpt = json.loads((out / "cap0" / "train.json").read_text())["result"]
-    assert ckpt["steps"] == TRAIN["iters"] + TRAIN["panoptic_iters"] or ckpt["steps"] >= TRAIN["iters"]
+    # the manifest's training options reached the training (steps counts the geometry schedule)
+    trained = json.loads((out / "cap0" / "train.json").read_text())["result"]
+    assert trained["steps"] == TRAIN["iters"] and trained["surfels"] > 100
 
 
 def test_tasks_never_share_a_worker_thread(first_run):

@@ -26,6 +26,7 @@ from psimap.batch.stages import DONE, MARK, STAGES, append_log, read_json
 SUMMARY = "summary.json"
 ALLOWED_FAILURES = 2            # a task whose worker died is run again on up to this many more workers
 CONNECT_TIMEOUT = "10s"         # --scheduler: how long to try reaching it
+WORKER_WAIT_S = 60              # --scheduler: how long to wait for its first worker
 
 
 def check_batch_dir(out, captures) -> Path:
@@ -94,6 +95,12 @@ def connect(scheduler: str, workers: int, threads: int, log):
         except (OSError, TimeoutError, ValueError, TypeError) as e:
             raise PsimapError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there "
                               f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'no answer'})") from None
+        try:
+            client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+        except TimeoutError:
+            client.close()
+            raise PsimapError(f"--scheduler {scheduler}: no worker joined it within {WORKER_WAIT_S} s "
+                              f"(start one: dask worker {scheduler})") from None
         infos = client.scheduler_info(n_workers=-1)["workers"].values()
         if infos and all(w.get("resources", {}).get("threads", 0) >= threads for w in infos):
             return client, None, threads, {"threads": threads}, f"scheduler {scheduler}"
@@ -122,7 +129,7 @@ def run_batch(captures, out, *, scheduler: str = "", workers: int = 0, threads_p
     root = check_batch_dir(out, captures)
     mark_output_dir(root, MARK)
     t0 = time.perf_counter()
-    summary = {"psimap": __version__, "out": str(root), "runs_on": "", "wall_s": 0.0, "captures": {}}
+    summary = {"psimap": __version__, "out": str(root), "runs_on": "nothing to run", "wall_s": 0.0, "captures": {}}
     todo = []
     for c in captures:
         done = read_json(root / c.name / DONE)
@@ -193,7 +200,10 @@ def _finish(summary: dict, root: Path, c, record: dict, bar, log, t0: float) -> 
     entry = summary["captures"][c.name] = capture_entry(record, ran=True)
     summary["wall_s"] = round(time.perf_counter() - t0, 3)
     write_summary(root, summary)
-    bar.write(describe(c.name, entry)) if not bar.disable else log(describe(c.name, entry))
+    if bar.disable:
+        log(describe(c.name, entry))
+    else:
+        bar.write(describe(c.name, entry))
 
 
 def _task_error(exc, stage: str) -> str:
