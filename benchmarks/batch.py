@@ -110,11 +110,13 @@ def main_batch(args) -> None:
             f"**Throughput ratio {ratio:.2f}x** (sequential {seq_wall:.1f} s / batch {batch_wall:.1f} s).\n\n"
             + totals + "\n\n" + table + "\n\n"
             f"Load average (1 min) {load0[0]:.1f} before, {load1[0]:.1f} after: the machine's 2 cores are "
-            f"shared with other agents' work, so both runs compete with it and the ratio is below what an idle "
-            f"machine gives. A task's time in the batch includes its worker's first import of torch / the export "
+            f"shared with other agents' work, and both runs competed with it: two worker processes also win a "
+            f"larger share of a loaded CPU than one process, so an idle machine's ratio may differ either way. "
+            f"A task's time in the batch includes its worker's first import of torch / the export "
             f"libraries (the sequential process imports them once, during cap0). Memory: the worker process's "
             f"resident set sampled every 20 ms during the task; the largest rise over a task's start was "
-            f"{per_task_peak:.0f} MB.\n")
+            f"{per_task_peak:.0f} MB (a task that follows another on the same worker rises less: memory the "
+            f"earlier one freed stays in the process).\n")
     write_section("batch", "Many captures: sequential vs psimap batch on Dask", body, plot=plot,
                   headlines=[(f"batch throughput, {len(caps)} captures, 2 workers vs sequential", f"{ratio:.2f}x")])
     if not args.work:
