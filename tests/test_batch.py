@@ -185,6 +185,33 @@ def test_a_killed_worker_is_replaced_and_the_task_runs_again(first_run, captures
     assert (out / "cap0" / "export" / "scene.xml").is_file()
 
 
+def test_a_task_whose_worker_keeps_dying_is_reported_and_the_batch_goes_on(captures, tmp_path):
+    """allowed-failures 0 on the test's scheduler: the first death is final. The capture is reported
+    with the stage that died, the batch returns its summary, and no completion marker is written."""
+    import cloudpickle
+    import dask
+    import sys
+    from distributed import Client, LocalCluster
+
+    from psimap.batch import runner
+    from psimap.batch.manifest import read_manifest
+
+    out = tmp_path / "out"
+    other = [c for c in read_manifest(captures / "batch.toml") if c.name == "renamed"]
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, resources={"threads": 1},
+                          dashboard_address=None, silence_logs=50) as cluster, Client(cluster) as client:
+            client.register_plugin(KillOnce("train-renamed", str(tmp_path / "killed"), delay=0.3))
+            s = runner.run_batch(other, out, scheduler=cluster.scheduler_address, log=lambda m: None)
+    e = s["captures"]["renamed"]
+    assert e["status"] == "failed" and e["error_stage"] == "train", e
+    assert "the worker running train died 1 time(s)" in e["error"]
+    assert json.loads((out / "summary.json").read_text())["counts"]["failed"] == 1
+    assert not (out / "renamed" / "done.json").exists()
+    assert "died 1 time(s)" in (out / "renamed" / "log.txt").read_text()
+
+
 # ---- without a cluster: manifest, CLI errors, memory, leftovers --------------------------------------
 def test_manifest_toml_json_globs_and_options(captures):
     from psimap.batch.manifest import parse_manifest, read_manifest

@@ -185,9 +185,9 @@ def _run(client, todo, root: Path, threads: int, resources, summary: dict, progr
             if fut.status == "error":
                 if c.name not in failed_early:      # later stages of the same capture err with it
                     failed_early.add(c.name)
-                    err = _task_error(fut.exception(), stage)
-                    record = {**S.new_record(c), "error": err, "error_stage": stage}
-                    append_log(root / c.name, [f"== {stage}: failed: {err}"])
+                    where, err = _task_error(fut.exception(), stage)
+                    record = {**S.new_record(c), "error": err, "error_stage": where}
+                    append_log(root / c.name, [f"== {where}: failed: {err}"])
                     _finish(summary, root, c, record, bar, log, t0)
                 continue
             if stage == "check":
@@ -206,13 +206,18 @@ def _finish(summary: dict, root: Path, c, record: dict, bar, log, t0: float) -> 
         bar.write(describe(c.name, entry))
 
 
-def _task_error(exc, stage: str) -> str:
+def _task_error(exc, stage: str) -> tuple[str, str]:
+    """(stage, message) of a task that erred: a worker died under it too often (KilledWorker: the
+    capture's later stages err with the same exception, so the stage is the dead task's), or an error
+    that escaped the stage."""
     from distributed import KilledWorker
 
     if isinstance(exc, KilledWorker):
-        return (f"{stage}: the worker running it died {exc.allowed_failures + 1} time(s) (killed, crashed or out "
-                f"of memory; last on {exc.last_worker.address})")
-    return f"{stage}: {type(exc).__name__}: {exc}"
+        died = str(exc.task).split("-", 1)[0]
+        stage = died if died in STAGES else stage
+        return stage, (f"the worker running {stage} died {exc.allowed_failures + 1} time(s) (killed, crashed or "
+                       f"out of memory; last on {exc.last_worker.address})")
+    return stage, f"{type(exc).__name__}: {exc}"
 
 
 def capture_entry(record: dict, *, ran: bool) -> dict:
