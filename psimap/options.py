@@ -179,3 +179,16 @@ class ImportMasksOptions:
     resize: bool = opt(False, "resize masks of another size than the frame to it (nearest neighbour; same "
                               "aspect ratio), e.g. masks of ScanNet's colour images")
     force: bool = opt(False, "replace labels the capture already has (labels.json, semantic/, instance/)")
+
+
+@dataclass
+class BatchOptions:
+    manifest: str = pos("TOML or JSON file listing the captures (folders or globs) and their options "
+                        "(docs/batch.md)")
+    out: str = opt("", "output folder: one folder per capture (checkpoint, export, log) and summary.json",
+                   required=True)
+    scheduler: str = opt("", "address of a running Dask scheduler (e.g. tcp://host:8786; DIR and the "
+                             "captures must be on a filesystem its workers share); default: a local cluster")
+    workers: int = opt(0, "local cluster: worker processes (0 = cores / --threads-per-worker)")
+    threads_per_worker: int = opt(1, "threads each worker has and each task uses (torch, the native "
+                                     "kernels, BLAS); a worker runs one task at a time")

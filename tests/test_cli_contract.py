@@ -33,6 +33,9 @@ CALLS1 = {
     "demo": ["demo", "--out", "{tmp}/demo", "--seed", "1", "--frames", "8", "--width", "64", "--height", "48",
              "--iters", "100", "--panoptic-iters", "20"],
     "bad_format": ["export", "{tmp}/none.ckpt", "--format", "fbx"],
+    # psimap batch's runs are in tests/test_batch.py; here its options reach the command's first check
+    "batch_missing": ["batch", "{tmp}/missing.toml", "--out", "{tmp}/b", "--scheduler", "tcp://127.0.0.1:9",
+                      "--workers", "1", "--threads-per-worker", "1"],
     # a tiny 7-Scenes capture and a COCO panoptic file the fixture writes (tests/test_import_masks.py)
     "import_masks": ["import-masks", "{tmp}/chess", "--masks", "{tmp}/m2f/panoptic_val.json", "--format",
                      "coco-panoptic", "--classes", "{tmp}/map.json", "--unmapped", "void", "--min-area", "2",
@@ -277,3 +280,11 @@ def test_import_masks_options(ran):
     assert "classes: table (thing), floor (stuff)" in out          # cups unmapped -> void, person -> null
     meta = json.loads((tmp / "chess" / "labels.json").read_text())
     assert sorted(meta["frames"]) == ["frame-000000", "frame-000001"]
+
+
+def test_batch_missing_manifest_is_one_line(ran):
+    res, tmp = ran
+    r = res["batch_missing"]
+    assert r.returncode == 1 and r.stderr.strip().count("\n") == 0
+    assert "psimap batch: error: manifest" in r.stderr and "no such file" in r.stderr
+    assert not (tmp / "b").exists()
