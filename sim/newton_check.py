@@ -34,11 +34,29 @@ def require_newton():
         # Warp announces itself, its missing CUDA driver and every kernel it compiles at info and
         # warning level: a check's report is the output here
         wp.config.log_level = max(int(wp.config.log_level), int(wp.LOG_ERROR))
+        _init_quietly(wp)
         import newton
         import newton_usd_schemas  # noqa: F401  (newton's USD importer needs it; a clear line if not)
     except ImportError:
         raise PsimapError(MISSING) from None
     return wp, newton
+
+
+def _init_quietly(wp) -> None:
+    """wp.init() with the process's stderr (fd 2) silenced: on a machine without a GPU, Warp's native
+    code prints a CUDA-driver warning that is no news to a CPU check. A failed init still raises."""
+    import os
+    import sys
+
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def load_usd_newton(path: str | Path):
