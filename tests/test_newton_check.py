@@ -12,6 +12,7 @@ import hashlib
 import json
 import shutil
 import sys
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +136,16 @@ def test_floating_and_penetrating_objects_fail_in_newton(export_dir, tmp_path):
     r = check_usd_newton(_moved_copy(out, tmp_path / "sunk", "/World/box_1", -0.01), duration=0.1)
     assert r["min_contact_dist"] == pytest.approx(-0.01, abs=1.5e-3)
     assert r["penetrating"] and not r["passed"] and "initial penetration" in r["failures"][0]
+    # stood on its 10 cm side at the same centre (its half height 4 -> 5 cm): 1 cm into the floor,
+    # measured through the body's rotation
+    from pxr import Usd, UsdGeom
+
+    usd = _moved_copy(out, tmp_path / "turned", "/World/box_1", 0.0)
+    stage = Usd.Stage.Open(str(usd))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/box_1")).AddRotateXOp().Set(90.0)
+    stage.GetRootLayer().Save()
+    r = check_usd_newton(usd, duration=0.1)
+    assert r["min_contact_dist"] == pytest.approx(-0.01, abs=1.5e-3) and r["penetrating"]
 
 
 def _digest(folder: Path) -> dict:
@@ -151,12 +162,21 @@ def test_psimap_check_reads_only(export_dir, tmp_path, capsys):
     text = capsys.readouterr().out
     assert text.startswith("mujoco: passed") and "\nnewton: passed" in text and "engines: 4 resting" in text
     assert _digest(out) == before                  # nothing written, nothing added (dot files too)
-    # a failing scene exits 2 and is not repaired: the penetrating box stays where it was
+    # a failing scene exits 2 and is not repaired: the box 1 cm into the floor in both files stays there
     bad = _moved_copy(out, tmp_path / "sunk", "/World/box_1", -0.01).parent
+    xml = bad / "scene.xml"
+    tree = ET.parse(xml)
+    body = [b for b in tree.getroot().iter("body") if b.get("name") == "box_1"][0]
+    pos = [float(v) for v in body.get("pos").split()]
+    body.set("pos", f"{pos[0]} {pos[1]} {pos[2] - 0.01}")
+    tree.write(xml)
     before = _digest(bad)
-    assert main(["check", str(bad), "--engine", "newton", "--json", "--duration", "0.1"]) == 2
+    assert main(["check", str(bad), "--engine", "all", "--json", "--duration", "0.1"]) == 2
     rep = json.loads(capsys.readouterr().out)
-    assert list(rep) == ["newton"] and rep["newton"]["penetrating"]
+    assert list(rep) == ["mujoco", "newton"]
+    for engine in rep.values():
+        assert engine["penetrating"] and engine["nudges"] == {}
+        assert engine["min_contact_dist"] == pytest.approx(-0.01, abs=1.5e-3)
     assert _digest(bad) == before
     # bad input: one line, exit 1
     assert main(["check", str(tmp_path / "nothing")]) == 1
@@ -193,3 +213,4 @@ def test_ycb_scans_settle_in_both_engines(newton, tmp_path):
     assert set(nw["drift"]) == set(mj["drift"]) == {"cracker_box_1", "banana_2"}
     assert mj["max_drift"] <= 0.01 and nw["max_drift"] <= 0.01
     assert nw["min_contact_dist"] == pytest.approx(mj["min_contact_dist"], abs=5e-4)
+
