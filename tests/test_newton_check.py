@@ -110,6 +110,17 @@ def test_newton_reads_what_the_writer_meant(export_dir):
     colliders = {s for f, s in zip(flags, labels) if f & collide}
     assert "/World/floor" in colliders and "/World/lump_4/collision_0" in colliders
     assert not any("visual" in s for s in colliders)
+    # every collider's friction is the MJCF geom's (the floor too: without a USD material Newton
+    # takes 1.0 where the MJCF says 0.8)
+    mu = model.shape_material_mu.numpy()
+    friction = {}
+    for f, s, m in zip(flags, labels, mu):
+        if f & collide:
+            geom = "floor" if s == "/World/floor" else "_".join(s.split("/")[2:])
+            friction[geom] = (float(m), float(mj.geom_friction[mj.geom(geom).id][0]))
+    assert len(friction) == 5 and friction["floor"][1] == pytest.approx(0.8)
+    for geom, (newton_mu, mujoco_mu) in friction.items():
+        assert newton_mu == pytest.approx(mujoco_mu, abs=1e-6), geom
 
 
 def _moved_copy(src: Path, dst: Path, prim: str, dz: float) -> Path:
