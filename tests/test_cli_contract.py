@@ -287,6 +287,9 @@ def test_check_reads_the_demo_export(ran):
     rep = json.loads(ok(res, "check").stdout)
     assert list(rep) == ["mujoco"] and rep["mujoco"]["passed"] and rep["mujoco"]["nudges"] == {}
     assert rep["mujoco"]["duration_s"] == pytest.approx(0.5)
-    assert rep["mujoco"]["max_drift"] <= 0.02 and rep["mujoco"]["bodies"] >= 1
+    exported = json.loads((tmp / "demo" / "export" / "report.json").read_text())
+    assert rep["mujoco"]["max_drift"] <= 0.02
+    assert rep["mujoco"]["bodies"] == sum(not o["static"] for o in exported["objects"])
+    assert rep["mujoco"]["static_bodies"] == exported["check"]["static_bodies"]
     # --check-engine mujoco (the default): no Newton report
     assert "check_newton" not in json.loads((tmp / "e_all" / "report.json").read_text())
