@@ -25,7 +25,7 @@ $(STAMP): $(NATIVE_SRC)
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q "scikit-build-core>=0.10" "nanobind>=2.0"
 	# The native kernels are built here; a compile error fails this step loudly.
-	$(PY) -m pip install -q --no-build-isolation -e ".[dev]"
+	$(PY) -m pip install -q --no-build-isolation -e ".[dev,newton]"
 	@touch $(STAMP)
 
 demo: $(STAMP)

@@ -44,6 +44,7 @@ def cli_export(opts) -> int:
                               check=not opts.no_check, progress=sys.stderr.isatty(),
                               overwrite=getattr(opts, "overwrite", False), up=getattr(opts, "up", "auto"),
                               min_dynamic=getattr(opts, "min_dynamic", 0.5),
+                              check_engine=getattr(opts, "check_engine", "mujoco"),
                               preview=not getattr(opts, "no_preview", False), **kw)
     prev = report.get("preview")
     if prev is not None and not prev.get("image"):
@@ -79,6 +80,11 @@ def cli_export(opts) -> int:
               f"{report['timings'].get('sim_seconds_per_wall_second', 0):.1f} sim s / wall s)")
         for name, reason in chk.get("pinned", {}).items():
             print(f"  {name} exported static: {reason}")
-        if not chk["passed"]:
-            return 2
+    nchk = report.get("check_newton")
+    if nchk is not None:
+        status = "passed" if nchk["passed"] else "FAILED: " + "; ".join(nchk["failures"])
+        print(f"Newton check of scene.usda {status} (min contact dist {nchk['min_contact_dist'] * 1000:.2f} mm, "
+              f"max drift {nchk['max_drift'] * 100:.2f} cm)")
+    if any(c is not None and not c["passed"] for c in (chk, nchk)):
+        return 2
     return 0 if out["passed"] else 2

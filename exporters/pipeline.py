@@ -55,7 +55,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                  completion: str = "auto", check: bool = True, background=None,
                  progress: bool = False, seed: int = 0, static_classes=None,
                  min_coverage: float = MIN_COVERAGE, pin_unstable: bool = True, overwrite: bool = False,
-                 up: str = "auto", min_dynamic: float = MIN_DYNAMIC, preview: bool = True, **kw) -> dict:
+                 up: str = "auto", min_dynamic: float = MIN_DYNAMIC, check_engine: str = "mujoco",
+                 preview: bool = True, **kw) -> dict:
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
@@ -80,6 +81,10 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     the rotation is in report["gravity"]. Objects passed as a list are taken as Z-up already.
     min_dynamic: report["outcome"] fails when fewer than this share of the things the map found
     (those not static by class) come out dynamic: a scene in which nothing can move is no success.
+    check_engine: "mujoco", "newton" or "all". The MuJoCo check always runs with `check` (its nudges
+    and pins place the objects); "newton" / "all" also settle the written scene.usda in Newton
+    (psimap.sim.newton_check; one written for it when the formats have no USD) into
+    report["check_newton"].
     preview: write preview.png (MuJoCo's offscreen renderer: the scene before and after the settle,
     objects tinted by role; exporters.preview) and report.html (exporters.html_report); with no
     offscreen OpenGL the export still succeeds, without preview.png (report["preview"] says why).
@@ -99,6 +104,13 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     if not 0.0 <= float(min_dynamic) <= 1.0:
         raise PsimapError(f"--min-dynamic must lie in 0..1, got {min_dynamic}")
     check_output_dir(out_dir, "export", overwrite=overwrite)       # before the work, not after it
+    from psimap.sim.export_check import engines_of
+
+    with_newton = check and "newton" in engines_of(check_engine)
+    if with_newton:         # a missing optional extra is an error before the work
+        from psimap.sim.newton_check import require_newton
+
+        require_newton()
     t0 = time.perf_counter()
     scene_steps: dict = {}
     if isinstance(scene_or_objects, (list, tuple)):
@@ -160,6 +172,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                     raise PsimapError(f"{fmt.title} validation failed: {found['errors'][0]}")
             timings[f"{name}_s"] = time.perf_counter() - t_fmt
         timings["writers_s"] = time.perf_counter() - t
+        if with_newton:
+            report["check_newton"] = newton_settle_check(scene, tmp, "usd" in fmts, timings)
         thumbs = {}
         if preview:
             from psimap.exporters.preview import finish_preview
@@ -263,6 +277,27 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
         shutil.rmtree(work_dir)
     timings["check_s"] = time.perf_counter() - t_check
     timings["sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
+    return res
+
+
+def newton_settle_check(scene, out_dir: Path, usd_written: bool, timings: dict) -> dict:
+    """The Newton check (psimap.sim.newton_check) of `scene` (ExportScene) after the MuJoCo check's
+    nudges: of out_dir/scene.usda when it was written, else of one written to a work folder and
+    removed after. Its speed and load time go to `timings` (report.json stays deterministic)."""
+    import shutil
+
+    from psimap.exporters.usd import write_usd
+    from psimap.sim.newton_check import check_usd_newton
+
+    t = time.perf_counter()
+    work = out_dir / ".check_newton"
+    try:
+        res = check_usd_newton(out_dir / "scene.usda" if usd_written else write_usd(scene, work))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    timings["newton_check_s"] = time.perf_counter() - t
+    timings["newton_load_s"] = res.pop("load_s")
+    timings["newton_sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
     return res
 
 

@@ -8,7 +8,8 @@ UsdGeom Sphere / Cube / Cylinder). The class goes on the object through UsdSeman
 ("class" taxonomy, what Isaac Sim's labelling reads) and the instance id as `psimap:instanceId`.
 The background is visual only; the static world collides through /World/environment: one convex
 Mesh per collider of exporters.environment (CollisionAPI, MeshCollisionAPI convexHull, purpose guide,
-`psimap:role` support / wall / ceiling / clutter), the same set the MJCF has, and the floor box. A
+`psimap:role` support / wall / ceiling / clutter), the same set the MJCF has, and the floor box, both
+with the MJCF's static-world friction (a UsdPhysics material). A
 static object (furniture, barely seen or pinned things) has colliders without RigidBodyAPI / MassAPI.
 """
 from __future__ import annotations
@@ -19,6 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from psimap.transforms import rotmat_to_quat
+
+# friction of the floor and the static world's colliders (the MJCF's floor and env_* geoms: 0.8)
+STATIC_FRICTION = 0.8
 
 
 def _vt():
@@ -71,6 +75,25 @@ def _material(stage, path: str, texture_file: str | None, rgb):
     return mat
 
 
+def _physics_material(stage, path: str, friction: float):
+    """A UsdShade Material with UsdPhysics.MaterialAPI (static = dynamic friction, restitution 0),
+    bound to colliders for the "physics" purpose."""
+    from pxr import UsdPhysics, UsdShade
+
+    mat = UsdShade.Material.Define(stage, path)
+    phys = UsdPhysics.MaterialAPI.Apply(mat.GetPrim())
+    phys.CreateStaticFrictionAttr(float(friction))
+    phys.CreateDynamicFrictionAttr(float(friction))
+    phys.CreateRestitutionAttr(0.0)
+    return mat
+
+
+def _bind_physics(prim, mat) -> None:
+    from pxr import UsdShade
+
+    UsdShade.MaterialBindingAPI.Apply(prim).Bind(mat, UsdShade.Tokens.weakerThanDescendants, "physics")
+
+
 def _visual(stage, parent: str, obj, origin: np.ndarray, assets: Path, rel_assets: str):
     from PIL import Image
     from pxr import Sdf, UsdGeom, UsdShade, Vt
@@ -118,6 +141,9 @@ def write_usd(scene, out_dir: str | Path) -> Path:
     floor.AddTranslateOp().Set(Gf.Vec3d(0, 0, floor_z - 0.05))
     floor.AddScaleOp().Set(Gf.Vec3f(100.0, 100.0, 0.1))
     UsdPhysics.CollisionAPI.Apply(floor.GetPrim())
+    # the MJCF floor's friction: without a material each engine takes its own default (Newton 1.0,
+    # PhysX 0.5)
+    _bind_physics(floor.GetPrim(), _physics_material(stage, "/World/Looks/FloorPhysicsMaterial", STATIC_FRICTION))
 
     def label(prim, obj):
         sem = UsdSemantics.LabelsAPI.Apply(prim, "class")
@@ -130,14 +156,8 @@ def write_usd(scene, out_dir: str | Path) -> Path:
         _visual(stage, bg.GetPath().pathString, background, np.zeros(3), assets, "assets")
         label(bg.GetPrim(), background)
     if scene.environment is not None and scene.environment.colliders:
-        from pxr import UsdShade
-
         UsdGeom.Xform.Define(stage, "/World/environment")
-        env_mat = UsdShade.Material.Define(stage, "/World/environment/Looks/PhysicsMaterial")
-        phys = UsdPhysics.MaterialAPI.Apply(env_mat.GetPrim())
-        phys.CreateStaticFrictionAttr(0.8)
-        phys.CreateDynamicFrictionAttr(0.8)
-        phys.CreateRestitutionAttr(0.0)
+        env_mat = _physics_material(stage, "/World/environment/Looks/PhysicsMaterial", STATIC_FRICTION)
         for c in scene.environment.colliders:
             pm = _mesh_prim(stage, f"/World/environment/{c.name}", np.asarray(c.mesh.vertices, np.float64),
                             np.asarray(c.mesh.faces))
@@ -145,8 +165,7 @@ def write_usd(scene, out_dir: str | Path) -> Path:
             UsdPhysics.CollisionAPI.Apply(pm.GetPrim())
             UsdPhysics.MeshCollisionAPI.Apply(pm.GetPrim()).CreateApproximationAttr(UsdPhysics.Tokens.convexHull)
             pm.GetPrim().CreateAttribute("psimap:role", Sdf.ValueTypeNames.Token).Set(c.role)
-            UsdShade.MaterialBindingAPI.Apply(pm.GetPrim()).Bind(env_mat, UsdShade.Tokens.weakerThanDescendants,
-                                                                 "physics")
+            _bind_physics(pm.GetPrim(), env_mat)
 
     for o in objects:
         ph = o.physics
@@ -196,17 +215,10 @@ def write_usd(scene, out_dir: str | Path) -> Path:
                 UsdPhysics.CollisionAPI.Apply(pm.GetPrim())
                 UsdPhysics.MeshCollisionAPI.Apply(pm.GetPrim()).CreateApproximationAttr(
                     UsdPhysics.Tokens.convexHull)
-        from pxr import UsdShade
-
-        pmat = UsdShade.Material.Define(stage, f"{base}/Looks/PhysicsMaterial")
-        mat = UsdPhysics.MaterialAPI.Apply(pmat.GetPrim())
-        mat.CreateStaticFrictionAttr(float(ph.friction))
-        mat.CreateDynamicFrictionAttr(float(ph.friction))
-        mat.CreateRestitutionAttr(0.0)
+        pmat = _physics_material(stage, f"{base}/Looks/PhysicsMaterial", ph.friction)
         for child in prim.GetChildren():
             if child.HasAPI(UsdPhysics.CollisionAPI):
-                UsdShade.MaterialBindingAPI.Apply(child).Bind(
-                    pmat, UsdShade.Tokens.weakerThanDescendants, "physics")
+                _bind_physics(child, pmat)
     stage.GetRootLayer().Save()
     return path
 

@@ -29,6 +29,10 @@ COMMANDS = {
                 "model-free per-frame pseudo-labels (planes + clusters) for a capture without masks"),
     "import-masks": (O.ImportMasksOptions, "psimap.data.masks_import:cli_import_masks",
                      "per-frame labels from a 2D segmenter's masks (COCO panoptic / instances, SAM)"),
+    "batch": (O.BatchOptions, "psimap.batch:cli_batch",
+              "many captures: train -> export -> check on a Dask cluster (local by default)"),
+    "check": (O.CheckOptions, "psimap.sim.export_check:cli_check",
+              "settle an export folder again in MuJoCo and / or Newton, without modifying it"),
 }
 
 

@@ -27,7 +27,7 @@ from psimap import PsimapError, __version__
 
 MARKER = ".psimap-output"           # JSON {"kind", "psimap", "files": [relative paths]} in an output folder
 SIGNATURE = f"written by psimap {__version__}"
-OUTPUT_KINDS = ("export", "labels", "scene", "demo")
+OUTPUT_KINDS = ("export", "labels", "scene", "demo", "batch")
 OVERWRITE_HINT = "choose another path or pass --overwrite"
 
 

@@ -131,6 +131,10 @@ class ExportOptions:
                           "cameras), or +z, -z, +y, -y, +x, -x, or a vector 'x,y,z'; the scene is exported "
                           "Z-up and the rotation recorded in report.json")
     overwrite: bool = overwrite_opt("folder")
+    check_engine: str = opt("mujoco", "engines that settle the exported scene: mujoco (scene.xml; this check "
+                                      "also nudges and pins objects), newton (also scene.usda in Newton on the "
+                                      "CPU: pip install 'psimap[newton]'; report.json check_newton), all",
+                            choices=["mujoco", "newton", "all"])
 
 
 @dataclass
@@ -181,3 +185,26 @@ class ImportMasksOptions:
     resize: bool = opt(False, "resize masks of another size than the frame to it (nearest neighbour; same "
                               "aspect ratio), e.g. masks of ScanNet's colour images")
     force: bool = opt(False, "replace labels the capture already has (labels.json, semantic/, instance/)")
+
+
+@dataclass
+class BatchOptions:
+    manifest: str = pos("TOML or JSON file listing the captures (folders or globs) and their options "
+                        "(docs/batch.md)")
+    out: str = opt("", "output folder: one folder per capture (checkpoint, export, log) and summary.json",
+                   required=True)
+    scheduler: str = opt("", "address of a running Dask scheduler (e.g. tcp://host:8786; DIR and the "
+                             "captures must be on a filesystem its workers share); default: a local cluster")
+    workers: int = opt(0, "local cluster: worker processes (0 = cores / --threads-per-worker)")
+    threads_per_worker: int = opt(1, "threads each worker has and each task uses (torch, the native "
+                                     "kernels, BLAS); a worker runs one task at a time")
+
+
+@dataclass
+class CheckOptions:
+    out: str = pos("export folder (psimap export --out) holding scene.xml and / or scene.usda; never modified")
+    engine: str = opt("mujoco", "mujoco settles scene.xml, newton scene.usda (pip install 'psimap[newton]'), "
+                                "all both", choices=["mujoco", "newton", "all"])
+    json: bool = opt(False, "print the reports as JSON")
+    duration: float = opt(2.0, "simulated seconds of the settle")
+    max_drift: float = opt(0.01, "metres a resting object may move in the settle")

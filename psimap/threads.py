@@ -14,6 +14,14 @@ from contextlib import contextmanager
 @contextmanager
 def single_threaded():
     """Run the block with one torch intra-op thread and one native-kernel thread; restore after."""
+    with limited_threads(1):
+        yield
+
+
+@contextmanager
+def limited_threads(n: int):
+    """Run the block with `n` torch intra-op threads and `n` native-kernel threads; restore after.
+    (A batch task states its thread count with this: psimap.batch.)"""
     import torch
 
     from psimap.render.api import native_available
@@ -23,9 +31,9 @@ def single_threaded():
         from psimap.render import native
     t0 = torch.get_num_threads()
     n0 = native.get_num_threads() if native is not None else None
-    torch.set_num_threads(1)
+    torch.set_num_threads(n)
     if n0 is not None:
-        native.set_num_threads(1)
+        native.set_num_threads(n)
     try:
         yield
     finally:

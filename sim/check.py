@@ -296,7 +296,6 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     start = np.array([data.xpos[b].copy() for b in free]).reshape(-1, 3)
     resting = [b in touching for b in free]
     steps = int(round(duration / model.opt.timestep))
-    nan = exploded = False
     t0 = time.perf_counter()
     for _ in range(steps):
         mujoco.mj_step(model, data)
@@ -307,11 +306,37 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         for n, b in zip(names, free):
             adr = model.jnt_qposadr[model.body_jntadr[b]]
             settled[n] = [float(v) for v in data.qpos[adr:adr + 7]]
-    if not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all()):
-        nan = True
-    else:
-        speeds = np.array([np.linalg.norm(data.cvel[b][3:]) for b in free]) if free else np.zeros(0)
-        exploded = bool((speeds > max_speed).any() or (np.abs(end - start) > 10.0).any())
+    nan = not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all())
+    speeds = np.array([np.linalg.norm(data.cvel[b][3:]) for b in free]) if free and not nan else np.zeros(0)
+    verdict = settle_verdict(names, start, end, resting, min_dist, nan, speeds, max_penetration=max_penetration,
+                             max_drift=max_drift, max_speed=max_speed)
+    return {
+        "loaded": True,
+        "file": path.name,
+        "bodies": len(free),
+        "static_bodies": static_bodies,
+        "duration_s": float(steps * model.opt.timestep),
+        "min_contact_dist": float(min_dist),
+        "penetrating": bool(min_dist < -max_penetration),
+        "nudges": nudges,
+        **verdict,
+        "sim_seconds_per_wall_second": float(steps * model.opt.timestep / max(wall, 1e-9)),
+    }
+
+
+def settle_verdict(names: list[str], start: np.ndarray, end: np.ndarray, resting: list[bool], min_dist: float,
+                   nan: bool, speeds: np.ndarray, *, max_penetration: float = 1e-3, max_drift: float = 0.01,
+                   max_speed: float = 5.0) -> dict:
+    """The settle test's criteria, one place for every engine (check_mjcf, newton_check).
+
+    names [B], start / end [B, 3] body positions before and after the settle, resting [B] (within
+    the support gap of something at t = 0), min_dist the deepest contact at t = 0 (m, < 0 =
+    penetration), speeds [B] (m/s) at the end. Returns the report's drift, max_drift, unsupported,
+    fell, unstable, nan, exploded, passed and failures."""
+    start, end = np.asarray(start, np.float64).reshape(-1, 3), np.asarray(end, np.float64).reshape(-1, 3)
+    exploded = False
+    if not nan:
+        exploded = bool((np.asarray(speeds) > max_speed).any() or (np.abs(end - start) > 10.0).any())
     drift = {n: float(np.linalg.norm(e - s)) for n, s, e, r in zip(names, start, end, resting) if r}
     # an object with nothing under it within support_gap falls: the scene is not what was scanned
     fell = {n: float(s[2] - e[2]) for n, s, e, r in zip(names, start, end, resting)
@@ -332,14 +357,6 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         failures.append(f"{len(moved)} resting object(s) moved more than {max_drift * 100:.1f} cm "
                         f"(worst {worst}: {moved[worst] * 100:.2f} cm)")
     return {
-        "loaded": True,
-        "file": path.name,
-        "bodies": len(free),
-        "static_bodies": static_bodies,
-        "duration_s": float(steps * model.opt.timestep),
-        "min_contact_dist": float(min_dist),
-        "penetrating": bool(min_dist < -max_penetration),
-        "nudges": nudges,
         "drift": dict(sorted(drift.items())),
         "max_drift": float(max(drift.values())) if drift else 0.0,
         "unsupported": sorted(n for n, r in zip(names, resting) if not r),
@@ -348,7 +365,6 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         "unstable": sorted(set(moved) | set(fell)),
         "nan": bool(nan),
         "exploded": bool(exploded),
-        "sim_seconds_per_wall_second": float(steps * model.opt.timestep / max(wall, 1e-9)),
         "passed": not failures,
         "failures": failures,
     }

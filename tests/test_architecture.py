@@ -41,6 +41,8 @@ STAGES = [
     ("completion", ("psimap.completion",)),
     ("sim", ("psimap.sim",)),
     ("exporters", ("psimap.exporters",)),
+    # many captures through train -> export -> check as Dask tasks (`psimap batch`)
+    ("batch", ("psimap.batch",)),
 ]
 # Entry points may import any stage, and no stage imports them (psimap.options: the CLI's option
 # tables, which list the choices the later stages register). The package root defines

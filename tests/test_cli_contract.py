@@ -33,6 +33,9 @@ CALLS1 = {
     "demo": ["demo", "--out", "{tmp}/demo", "--seed", "1", "--frames", "8", "--width", "64", "--height", "48",
              "--iters", "100", "--panoptic-iters", "20"],
     "bad_format": ["export", "{tmp}/none.ckpt", "--format", "fbx"],
+    # psimap batch's runs are in tests/test_batch.py; here its options reach the command's first check
+    "batch_missing": ["batch", "{tmp}/missing.toml", "--out", "{tmp}/b", "--scheduler", "tcp://127.0.0.1:9",
+                      "--workers", "1", "--threads-per-worker", "1"],
     # a tiny 7-Scenes capture and a COCO panoptic file the fixture writes (tests/test_import_masks.py)
     "import_masks": ["import-masks", "{tmp}/chess", "--masks", "{tmp}/m2f/panoptic_val.json", "--format",
                      "coco-panoptic", "--classes", "{tmp}/map.json", "--unmapped", "void", "--min-area", "2",
@@ -45,7 +48,7 @@ CALLS2 = {
     "mesh": ["mesh", "{tmp}/demo/scene.ckpt", "--out", "{tmp}/mesh.ply", "--voxel", "0.04"],
     "export_all": ["export", "{tmp}/demo/scene.ckpt", "--format", "all", "--out", "{tmp}/e_all",
                    "--completion", "auto", "--densities", "{tmp}/densities.json", "--static-classes", "none",
-                   "--no-pin-unstable", "--up", "+z"],
+                   "--no-pin-unstable", "--up", "+z", "--check-engine", "mujoco"],
     "export_usd": ["export", "{tmp}/demo/scene.ckpt", "--format", "usd", "--out", "{tmp}/e_usd",
                    "--completion", "none", "--no-check", "--dynamic-all", "--min-dynamic", "0"],
     "export_glb": ["export", "{tmp}/demo/scene.ckpt", "--format", "glb", "--out", "{tmp}/e_glb",
@@ -59,6 +62,9 @@ CALLS2 = {
     "segment": ["segment", "{tmp}/gen", "--force", "--up", "+z", "--every", "2", "--preview", "{tmp}/seg.png",
                 "--noise-k", "3", "--min-wall-area", "0.8", "--min-support-area", "0.15", "--colour-edge", "0.5",
                 "--min-pixels", "4"],
+    # reads the demo's export only (tests/test_newton_check.py: Newton, and the folder byte for byte)
+    "check": ["check", "{tmp}/demo/export", "--engine", "mujoco", "--json", "--duration", "0.5",
+              "--max-drift", "0.02"],
 }
 DENSITY = {"cabinet": 321.0}
 # Options a dedicated test file exercises through the console script instead (flag -> where).
@@ -277,3 +283,24 @@ def test_import_masks_options(ran):
     assert "classes: table (thing), floor (stuff)" in out          # cups unmapped -> void, person -> null
     meta = json.loads((tmp / "chess" / "labels.json").read_text())
     assert sorted(meta["frames"]) == ["frame-000000", "frame-000001"]
+
+
+def test_batch_missing_manifest_is_one_line(ran):
+    res, tmp = ran
+    r = res["batch_missing"]
+    assert r.returncode == 1 and r.stderr.strip().count("\n") == 0
+    assert "psimap batch: error: manifest" in r.stderr and "no such file" in r.stderr
+    assert not (tmp / "b").exists()
+
+
+def test_check_reads_the_demo_export(ran):
+    res, tmp = ran
+    rep = json.loads(ok(res, "check").stdout)
+    assert list(rep) == ["mujoco"] and rep["mujoco"]["passed"] and rep["mujoco"]["nudges"] == {}
+    assert rep["mujoco"]["duration_s"] == pytest.approx(0.5)
+    exported = json.loads((tmp / "demo" / "export" / "report.json").read_text())
+    assert rep["mujoco"]["max_drift"] <= 0.02
+    assert rep["mujoco"]["bodies"] == sum(not o["static"] for o in exported["objects"])
+    assert rep["mujoco"]["static_bodies"] == exported["check"]["static_bodies"]
+    # --check-engine mujoco (the default): no Newton report
+    assert "check_newton" not in json.loads((tmp / "e_all" / "report.json").read_text())
