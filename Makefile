@@ -13,6 +13,12 @@ $(STAMP): $(NATIVE_SRC)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || { \
 	  echo "installing Debian's libusb-1.0-0 (open3d needs it)"; \
 	  apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; }
+	@# an export's preview.png: MuJoCo's offscreen OpenGL (EGL, OSMesa the fallback); report.html's
+	@# test opens the page in headless Chromium
+	@missing=$$(for p in libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 chromium; do \
+	  dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	if [ -n "$$missing" ]; then echo "installing Debian's" $$missing "(previews)"; \
+	  apt-get update -qq && apt-get install -y -qq $$missing >/dev/null; fi
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	# torch first, pinned: a looser spec pulls a multi-GB CUDA build.

@@ -9,7 +9,7 @@ Installed as `psimap.exporters` (never as a top-level `exporters`).
 
 def cli_export(opts) -> int:
     """`psimap export CKPT --format FORMAT|all --out OUT [--completion auto|none] [--no-check]
-    [--static-classes a,b | --dynamic-all]` (formats: exporters.formats.FORMATS)."""
+    [--no-preview] [--static-classes a,b | --dynamic-all]` (formats: exporters.formats.FORMATS)."""
     import sys
 
     from psimap.exporters.pipeline import export_scene
@@ -34,11 +34,21 @@ def cli_export(opts) -> int:
         kw["min_coverage"] = 0.0
     kw["pin_unstable"] = not (getattr(opts, "no_pin_unstable", False) or getattr(opts, "dynamic_all", False))
     scene = load_scene(opts.ckpt)
-    report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
-                          check=not opts.no_check, progress=sys.stderr.isatty(),
-                          overwrite=getattr(opts, "overwrite", False), up=getattr(opts, "up", "auto"),
-                          min_dynamic=getattr(opts, "min_dynamic", 0.5),
-                          check_engine=getattr(opts, "check_engine", "mujoco"), **kw)
+    import warnings
+
+    from psimap.exporters.preview import PreviewWarning
+
+    with warnings.catch_warnings():     # said below in one line, from the report
+        warnings.simplefilter("ignore", PreviewWarning)
+        report = export_scene(scene, opts.out, opts.format, completion=opts.completion,
+                              check=not opts.no_check, progress=sys.stderr.isatty(),
+                              overwrite=getattr(opts, "overwrite", False), up=getattr(opts, "up", "auto"),
+                              min_dynamic=getattr(opts, "min_dynamic", 0.5),
+                              check_engine=getattr(opts, "check_engine", "mujoco"),
+                              preview=not getattr(opts, "no_preview", False), **kw)
+    prev = report.get("preview")
+    if prev is not None and not prev.get("image"):
+        print(f"warning: no preview.png ({prev.get('reason')}); report.html has the table", file=sys.stderr)
     out = report["outcome"]
     # the line a user reads first: did the things come out as things that move?
     print(("" if out["passed"] else "FAILED: ") + out["summary"]

@@ -6,13 +6,16 @@ OUT/
   meshes/<name>.obj (+ .mtl, .png)  visual mesh of every object, world frame
   collision/<name>_<k>.obj          convex collision parts (world frame; primitives as meshes)
   report.json                       per object + the simulation check (deterministic)
+  preview.png, report.html          the scene before / after the settle, a page per export (below)
   timings.json                      wall-clock timings (the only file that differs between runs)
 The folder is built in a temporary directory and renamed at the end: never half written.
 """
 from __future__ import annotations
 
 import json
+import shutil
 import time
+from contextlib import ExitStack
 from dataclasses import replace
 from pathlib import Path
 
@@ -53,7 +56,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
                  progress: bool = False, seed: int = 0, static_classes=None,
                  min_coverage: float = MIN_COVERAGE, pin_unstable: bool = True, overwrite: bool = False,
                  up: str = "auto", min_dynamic: float = MIN_DYNAMIC, check_engine: str = "mujoco",
-                 **kw) -> dict:
+                 preview: bool = True, **kw) -> dict:
     """Export objects to `out_dir`; returns the report dict (also written as report.json).
 
     scene_or_objects: psimap.scene.Scene (objects extracted with the full pipeline) or a list of
@@ -82,6 +85,9 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     and pins place the objects); "newton" / "all" also settle the written scene.usda in Newton
     (psimap.sim.newton_check; one written for it when the formats have no USD) into
     report["check_newton"].
+    preview: write preview.png (MuJoCo's offscreen renderer: the scene before and after the settle,
+    objects tinted by role; exporters.preview) and report.html (exporters.html_report); with no
+    offscreen OpenGL the export still succeeds, without preview.png (report["preview"] says why).
 
     Roles are decided on copies of the objects (the ones passed in keep theirs). The order:
     objects -> roles -> meshes/ and collision/ (as reconstructed) -> settle check (pins, nudges) ->
@@ -139,14 +145,19 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
               "environment": None if environment is None else environment.summary(),
               "skipped": [{"name": o.name, "instance_id": int(o.instance_id), "class": o.label, "reason": o.why}
                           for o in all_objs if o.role is Role.SKIPPED]}
-    with atomic_dir(out_dir, "export", overwrite=overwrite) as tmp:
+    with atomic_dir(out_dir, "export", overwrite=overwrite) as tmp, ExitStack() as on_exit:
         files = _write_meshes(scene, tmp)
         from psimap.exporters.report import object_entry, write_report
 
         t = time.perf_counter()
+        settled = {} if check else None
         if check:
-            report["check"] = settle_check(scene, tmp / ".check", pin_unstable=pin_unstable, timings=timings)
+            report["check"] = settle_check(scene, tmp / ".check", pin_unstable=pin_unstable, timings=timings,
+                                           settled=settled, keep=preview)
             scene = scene.nudged(report["check"]["nudges"])
+        if preview:     # drawn in a child process while the writers write
+            pending, t_preview = _start_preview(scene, tmp, settled), time.perf_counter()
+            on_exit.callback(pending.cancel)    # a writer that fails stops the child before tmp goes
         # after the check: it may have pinned objects static
         report["objects"] = [object_entry(o, files[o.name]) for o in scene.objects]
         report["outcome"] = export_outcome(all_objs, scene.objects, min_dynamic, static_classes)
@@ -163,8 +174,21 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         timings["writers_s"] = time.perf_counter() - t
         if with_newton:
             report["check_newton"] = newton_settle_check(scene, tmp, "usd" in fmts, timings)
+        thumbs = {}
+        if preview:
+            from psimap.exporters.preview import finish_preview
+
+            t_wait = time.perf_counter()
+            report["preview"], thumbs = finish_preview(pending, scene, report.get("check"), tmp)
+            timings["preview_wait_s"] = time.perf_counter() - t_wait     # what the preview adds
+            timings["preview_s"] = time.perf_counter() - t_preview       # the child's draw, overlapped
+            shutil.rmtree(tmp / ".preview")
         timings["total_s"] = time.perf_counter() - t0
         write_report(tmp / "report.json", report)
+        if preview:     # from report.json as written: the page shows its figures, never others
+            from psimap.exporters.html_report import write_html
+
+            write_html(tmp / "report.html", json.loads((tmp / "report.json").read_text()), thumbs)
         (tmp / "timings.json").write_text(json.dumps({k: round(v, 4) for k, v in timings.items()},
                                                      indent=2, sort_keys=True) + "\n")
     report["timings"] = timings
@@ -222,21 +246,22 @@ def gravity_aligned(scene, up: str = "auto"):
     return scene.rotated(est.rotation), est
 
 
-def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: dict | None = None) -> dict:
+def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: dict | None = None,
+                 settled: dict | None = None, keep: bool = False) -> dict:
     """The MuJoCo check (psimap.sim.check.check_mjcf) of `scene` (ExportScene), on an MJCF written
     to `work_dir` for it and removed after. Returns the check's report with "pinned" {name:
     reason}: with pin_unstable, dynamic objects that moved or fell are made static (Reason.UNSTABLE,
     on scene's objects) and the scene is checked again, up to PIN_ROUNDS times. The nudges it
     reports are those of the last round, for the scene as its objects' roles now stand.
-    timings: receives check_s and sim_seconds_per_wall_second."""
-    import shutil
-
+    timings: receives check_s and sim_seconds_per_wall_second. settled: receives the last round's
+    poses after the settle (check_mjcf's `settled`); keep: leave work_dir/scene.xml, the MJCF of the
+    last round (nudged, roles as they now stand), for the caller to remove."""
     from psimap.exporters.mjcf import write_mjcf
     from psimap.sim.check import check_mjcf
 
     timings = {} if timings is None else timings
     t_check = time.perf_counter()
-    res = check_mjcf(write_mjcf(scene, work_dir))
+    res = check_mjcf(write_mjcf(scene, work_dir), settled=settled)
     pinned = {}
     for _ in range(PIN_ROUNDS if pin_unstable else 0):
         movers = [o for o in scene.objects if o.name in res["unstable"] and o.role is Role.DYNAMIC]
@@ -246,9 +271,10 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
             moved = res["drift"].get(o.name, res["fell"].get(o.name, 0.0))
             pinned[o.name] = f"unstable in the settle check (moved {moved * 100:.1f} cm in 2 s)"
             o.make_static(Reason.UNSTABLE, pinned[o.name])
-        res = check_mjcf(write_mjcf(scene, work_dir))
+        res = check_mjcf(write_mjcf(scene, work_dir), settled=settled)
     res["pinned"] = pinned
-    shutil.rmtree(work_dir)
+    if not keep:
+        shutil.rmtree(work_dir)
     timings["check_s"] = time.perf_counter() - t_check
     timings["sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
     return res
@@ -273,6 +299,22 @@ def newton_settle_check(scene, out_dir: Path, usd_written: bool, timings: dict) 
     timings["newton_load_s"] = res.pop("load_s")
     timings["newton_sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
     return res
+
+
+def _start_preview(scene, tmp: Path, settled: dict | None):
+    """Start drawing the preview of `scene` (roles final, nudged) in tmp/.preview: from the settle
+    check's MJCF (tmp/.check, kept for it) with its settled poses, or, without a check, from an MJCF
+    written for the picture alone."""
+    from psimap.exporters.preview import start_preview
+
+    work = tmp / ".preview"
+    if settled is not None:
+        (tmp / ".check").rename(work)
+    else:
+        from psimap.exporters.mjcf import write_mjcf
+
+        write_mjcf(scene, work)
+    return start_preview(scene, work / "scene.xml", work / "pictures.npz", settled)
 
 
 def assign_roles(objs, static_classes=None, min_coverage: float = MIN_COVERAGE) -> None:

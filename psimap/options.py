@@ -115,6 +115,8 @@ class ExportOptions:
                                   "installed package adds (entry-point group psimap.completion)",
                           choices=Choices(), metavar="METHOD")
     no_check: bool = opt(False, "skip the MuJoCo simulation check")
+    no_preview: bool = opt(False, "write no preview.png / report.html (MuJoCo's offscreen pictures of the scene "
+                                  "before and after the settle; a second or two on a room)")
     densities: str = opt("", "JSON file {class name: kg/m^3} overriding the default density table")
     static_classes: str = opt("", "comma-separated classes exported static (no freejoint / rigid body); "
                                   "default: heavy furniture (table, cabinet, shelf, ...); 'none' = all dynamic")

@@ -258,7 +258,7 @@ def _model_from_tree(tree, path: Path):
 
 def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: float = 1e-3,
                max_drift: float = 0.01, resolve: bool = True, max_speed: float = 5.0,
-               support_gap: float = 0.005, max_gap: float = 0.02) -> dict:
+               support_gap: float = 0.005, max_gap: float = 0.02, settled: dict | None = None) -> dict:
     """Load, penetration, settle and stability check of an MJCF scene. Returns a plain dict report:
 
     loaded, bodies (free), static_bodies (names of world-welded bodies with colliders), min_contact_dist
@@ -268,6 +268,8 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     bodies that fell more than max_drift: a failure), unstable (names of the bodies that moved more
     than max_drift or fell), nan, exploded, sim_seconds_per_wall_second,
     passed, failures [str].
+    settled: when given, receives {free body name: [x, y, z, qw, qx, qy, qz]}, its pose (freejoint
+    qpos) after the settle (the export's preview draws it; the report keeps its shape).
     """
     import mujoco
 
@@ -299,6 +301,11 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         mujoco.mj_step(model, data)
     wall = time.perf_counter() - t0
     end = np.array([data.xpos[b].copy() for b in free]).reshape(-1, 3)
+    if settled is not None:
+        settled.clear()
+        for n, b in zip(names, free):
+            adr = model.jnt_qposadr[model.body_jntadr[b]]
+            settled[n] = [float(v) for v in data.qpos[adr:adr + 7]]
     nan = not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all())
     speeds = np.array([np.linalg.norm(data.cvel[b][3:]) for b in free]) if free and not nan else np.zeros(0)
     verdict = settle_verdict(names, start, end, resting, min_dist, nan, speeds, max_penetration=max_penetration,
