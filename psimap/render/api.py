@@ -83,18 +83,21 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
 
     from psimap.render.project import project_surfels
 
-    proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
-
     use_native = backend == "native" or (backend == "auto" and device.type == "cpu" and native_available())
     if use_native:
         try:
-            from psimap.render.native import rasterize_native
+            from psimap.render.native import project_surfels as project_native, rasterize_native
         except Exception as exc:   # an unbuilt extension is the user's setup, not a bug
             raise PsimapError(f"native renderer backend is not available ({exc}); "
                               f"reinstall psimap to build it, or use backend='reference'") from exc
+        # Camera gradients (a pose being optimised) exist only in the torch projection.
+        native_stage1 = device.type == "cpu" and not (viewmat.requires_grad or K.requires_grad)
+        proj = (project_native if native_stage1 else project_surfels)(
+            means, quats, scales, opacities, viewmat, K, width, height, near, far)
         return rasterize_native(proj, opacities, colors, features, width, height, topk, tiles,
                                 near, far, background)
     from psimap.render.reference import rasterize_reference
 
+    proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
     return rasterize_reference(proj, opacities, colors, features, width, height, topk=topk, tiles=tiles,
                                near=near, far=far, background=background)
