@@ -143,3 +143,32 @@ def test_rasterize_uses_the_native_projection_unless_the_camera_needs_gradients(
     assert calls == [1] and pose.grad is not None and float(pose.grad.abs().max()) > 0
     with pytest.raises(ValueError, match="camera gradients"):
         project_native(*surfels, pose, K, W, H)
+
+
+def test_precise_tiles_skip_pixel_blocks_outside_the_footprint():
+    """Precise tiles: a tilted, elongated splat's box is mostly empty corners; the native kernels
+    only visit the 4x4 pixel blocks its footprint meets (same image as the reference, which
+    tests/test_render_native.py checks), so they evaluate well under the box's pixel count.
+    With circle tiles every pixel of the box is evaluated (no stop: faint surfels)."""
+    n = 24
+    g = torch.Generator().manual_seed(11)
+    means = torch.cat([(torch.rand(n, 2, generator=g, dtype=torch.float64) - 0.5) * 1.2,
+                       torch.full((n, 1), 2.5, dtype=torch.float64)], -1)
+    ang = torch.full((n,), 0.6, dtype=torch.float64)        # about the optical axis: a diagonal splat
+    quats = torch.stack([torch.cos(ang / 2), 0 * ang, 0 * ang, torch.sin(ang / 2)], -1)
+    scales = torch.tensor([[0.5, 0.02]], dtype=torch.float64).expand(n, 2).contiguous()
+    opac = torch.full((n,), 0.2, dtype=torch.float64)
+    colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    K = torch.tensor([[50.0, 0, W / 2 - 0.5], [0, 50.0, H / 2 - 0.5], [0, 0, 1]], dtype=torch.float64)
+    args = [t.float() for t in (means, quats, scales, opac, colors)]
+    V = torch.eye(4)
+    proj = project_native(*args[:4], V, K.float(), W, H)
+    evaluated, in_box = {}, {}
+    for tiles in ("precise", "circle"):
+        box = (proj.box_precise if tiles == "precise" else proj.box_circle).long()
+        in_box[tiles] = int(((box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])).sum())
+        out = rasterize(*args, V, K.float(), W, H, tiles=tiles, backend="native")
+        evaluated[tiles] = out.stats["evaluated"]
+    assert float(out.alpha.max()) > 0.3
+    assert evaluated["circle"] == in_box["circle"]
+    assert evaluated["precise"] < 0.75 * in_box["precise"], (evaluated, in_box)

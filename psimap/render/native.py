@@ -115,6 +115,7 @@ class _Plan:
     width: int
     height: int
     topk: int                # 0 = blend features over every surfel
+    exact_footprint: bool    # precise tiles: cull 4x4 pixel blocks by the surfel's footprint too
     near: float
     far: float
     background: np.ndarray   # [3] float32
@@ -124,7 +125,7 @@ class _Plan:
 def _kernel_args(plan: _Plan, arrays: list[np.ndarray], channels: int) -> tuple:
     T, center, depth_key, normal, opac, colors, feats = arrays
     return (T, center, depth_key, normal, opac, colors, feats, channels, plan.box, plan.offsets, plan.ids,
-            plan.width, plan.height, plan.topk, plan.near, plan.far, plan.background)
+            plan.width, plan.height, plan.topk, plan.exact_footprint, plan.near, plan.far, plan.background)
 
 
 class _RasterizeNative(torch.autograd.Function):
@@ -201,6 +202,7 @@ def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Ten
     bg = (np.zeros(3, np.float32) if background is None
           else np.ascontiguousarray(background.detach().to(torch.float32).cpu().numpy().reshape(3)))
     plan = _Plan(box=box_np, offsets=offsets, ids=ids, width=int(width), height=int(height), topk=k,
+                 exact_footprint=tiles == "precise",
                  near=float(near), far=float(far), background=bg)
     outs = _RasterizeNative.apply(proj.T, proj.center, proj.depth_key, proj.normal_c,
                                   opacities, colors, features, plan)

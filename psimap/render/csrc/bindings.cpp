@@ -47,8 +47,8 @@ Common make_common(Array<const float>& T, Array<const float>& center,
                    Array<const float>& opacity, Array<const float>& color,
                    Array<const float>& feature, int channels, Array<const int32_t>& box,
                    Array<const int32_t>& offsets,
-                   Array<const int32_t>& ids, int width, int height, int topk, float near,
-                   float far, Array<const float>& background) {
+                   Array<const int32_t>& ids, int width, int height, int topk, bool exact_footprint,
+                   float near, float far, Array<const float>& background) {
     Common c;
     const size_t n = opacity.size();
     if (width <= 0 || height <= 0) throw std::invalid_argument("psimap native: empty image");
@@ -79,6 +79,7 @@ Common make_common(Array<const float>& T, Array<const float>& center,
     c.cfg.width = width;
     c.cfg.height = height;
     c.cfg.topk = topk;
+    c.cfg.exact_footprint = exact_footprint;
     c.cfg.near = near;
     c.cfg.far = far;
     const float* b = checked(background, 3, "background");
@@ -207,14 +208,15 @@ NB_MODULE(_native, m) {
            Array<const float> normal, Array<const float> opacity, Array<const float> color,
            Array<const float> feature, int channels, Array<const int32_t> box,
            Array<const int32_t> offsets,
-           Array<const int32_t> ids, int width, int height, int topk, float near, float far,
+           Array<const int32_t> ids, int width, int height, int topk, bool exact_footprint, float near, float far,
            Array<const float> background, Array<float> out_rgb, Array<float> out_alpha,
            Array<float> out_depth, Array<float> out_median, Array<float> out_normal,
            Array<float> out_distortion, Array<float> out_feature, Array<float> t_final,
            Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
            Array<int32_t> topk_pos) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
-                                   box, offsets, ids, width, height, topk, near, far, background);
+                                   box, offsets, ids, width, height, topk, exact_footprint, near, far,
+                                   background);
             ForwardBuffers b = make_buffers(c, out_rgb, out_alpha, out_depth, out_median,
                                             out_normal, out_distortion, out_feature, t_final,
                                             n_last, median_pos, dist_sums, topk_pos);
@@ -229,7 +231,7 @@ NB_MODULE(_native, m) {
            Array<const float> normal, Array<const float> opacity, Array<const float> color,
            Array<const float> feature, int channels, Array<const int32_t> box,
            Array<const int32_t> offsets,
-           Array<const int32_t> ids, int width, int height, int topk, float near, float far,
+           Array<const int32_t> ids, int width, int height, int topk, bool exact_footprint, float near, float far,
            Array<const float> background, Array<float> depth, Array<float> t_final,
            Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
            Array<int32_t> topk_pos, Array<const float> g_rgb, Array<const float> g_alpha,
@@ -238,7 +240,8 @@ NB_MODULE(_native, m) {
            Array<float> g_center, Array<float> g_depth_key, Array<float> g_normal_c,
            Array<float> g_opacity, Array<float> g_color, Array<float> g_feat) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
-                                   box, offsets, ids, width, height, topk, near, far, background);
+                                   box, offsets, ids, width, height, topk, exact_footprint, near, far,
+                                   background);
             const size_t px = static_cast<size_t>(width) * height;
             const size_t n = static_cast<size_t>(c.in.n);
             ForwardBuffers s{};
