@@ -172,3 +172,17 @@ def test_precise_tiles_skip_pixel_blocks_outside_the_footprint():
     assert float(out.alpha.max()) > 0.3
     assert evaluated["circle"] == in_box["circle"]
     assert evaluated["precise"] < 0.75 * in_box["precise"], (evaluated, in_box)
+
+
+def test_input_check_finds_one_bad_value_and_accepts_sums_that_overflow():
+    """rasterize's finiteness check sums first (one pass); a sum that is not finite only sends it
+    to the per-value check, so huge finite inputs still render and one inf is still named."""
+    q = torch.tensor([[1.0, 0, 0, 0]] * 3)
+    args = [torch.ones(3, 2), torch.full((3,), 0.5), torch.ones(3, 3), torch.eye(4), torch.eye(3), 8, 8]
+    far = torch.full((3, 3), 3e38)                # finite, but their sum overflows float32
+    out = rasterize(far, q, *args, backend="native")
+    assert float(out.alpha.max()) == 0.0          # beyond the far plane: nothing drawn, no error
+    bad = torch.zeros(3, 3)
+    bad[1, 2] = float("inf")
+    with pytest.raises(ValueError, match="means contains 1 NaN/inf"):
+        rasterize(bad, q, *args, backend="native")

@@ -20,7 +20,9 @@ def _check(name: str, t, shape: tuple, n: int | None = None) -> None:
         raise ValueError(f"rasterize: {name} must have shape {pretty} (N = {n}), got {list(t.shape)}")
     if not t.is_floating_point():
         raise ValueError(f"rasterize: {name} must be a floating-point tensor, got {t.dtype}")
-    if t.numel() and not bool(torch.isfinite(t).all()):
+    # A finite sum means every value is finite (a NaN or an inf would carry into it) in one
+    # pass without temporaries; only when it is not (or it overflowed) is each value looked at.
+    if t.numel() and not bool(torch.isfinite(t.sum())) and not bool(torch.isfinite(t).all()):
         bad = int((~torch.isfinite(t)).sum())
         raise ValueError(f"rasterize: {name} contains {bad} NaN/inf value(s)")
 

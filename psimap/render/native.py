@@ -60,6 +60,7 @@ class _ProjectNative(torch.autograd.Function):
         normal = _empty((n, 3), np_dtype)
         valid, flip = _empty((n,), np.uint8), _empty((n,), np.uint8)
         box_p, box_c = _empty((n, 4), np.int32), _empty((n, 4), np.int32)
+        ctx.set_materialize_grads(False)   # unused outputs' gradients arrive as None
         getattr(_native, "project_forward_" + suffix)(*arrays, *frame, T, center, key, normal, valid, flip,
                                                       box_p, box_c)
         ctx.frame, ctx.arrays, ctx.masks, ctx.suffix, ctx.dtype = frame, arrays, (valid, flip), suffix, dtype
@@ -135,6 +136,9 @@ class _RasterizeNative(torch.autograd.Function):
         # features [N,C] -> rgb [H,W,3], alpha, depth, median [H,W], normal [H,W,3], distortion,
         # features [H,W,C].
         H, W, C, K = plan.height, plan.width, features.shape[1], plan.topk
+        # Outputs the loss does not use come back as None (the backward passes zeros to the
+        # kernel) instead of torch allocating and filling a zero image for each.
+        ctx.set_materialize_grads(False)
         arrays = [_f32(t) for t in (T, center, depth_key, normal_c, opacities, colors, features)]
         rgb, alpha, depth = _empty((H, W, 3)), _empty((H, W)), _empty((H, W))
         median, normal, dist = _empty((H, W)), _empty((H, W, 3)), _empty((H, W))
