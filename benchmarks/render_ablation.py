@@ -111,8 +111,9 @@ def main(argv=None) -> int:
     cmp_table = markdown_table(["pass (Full config)", "reference ms (wall)", "native ms (wall)", "speed-up (wall)",
                                 "reference ms (CPU)", "native ms (CPU)", "speed-up (CPU)"], cmp_rows)
 
-    # Profile of one native Full frame (forward + backward) by stage, in CPU time (torch.profiler's
-    # self CPU time of each autograd node; "other" = the torch glue between them: losses, copies).
+    # Profile of one native Full frame (forward + backward) by stage: torch.profiler's self time of
+    # each autograd node (elapsed time on the CPU, so inflated on a loaded machine like the wall
+    # columns); "other" = the torch glue between them: losses, clones, copies.
     from torch.profiler import ProfilerActivity, profile
 
     from psimap.render.project import project_surfels as project_torch
@@ -154,7 +155,8 @@ def main(argv=None) -> int:
              f"{args.surfels} surfels (synthetic room), {W}x{H}, C = {C}, K = {args.topk}, "
              f"{threads} OpenMP threads, torch {torch.__version__} with {torch.get_num_threads()} threads; "
              f"median of {args.repeats} runs (reference: 1 run).\n\n{cmp_table}\n\n{ratios}\n\n"
-             f"Profile (CPU ms per frame) of a native Full frame, forward + backward: {profile_line}. "
+             f"Profile (ms per frame, torch.profiler self time: elapsed, not CPU) of a native Full frame, "
+             f"forward + backward: {profile_line}. "
              f"The torch projection (psimap/render/project.py, the reference) takes {1e3 * c_proj_torch:.1f} ms "
              f"forward alone on the same surfels.")
     title = "Renderer ablation (paper Table ablation_speed), native CPU kernels"
