@@ -20,7 +20,9 @@ def _check(name: str, t, shape: tuple, n: int | None = None) -> None:
         raise ValueError(f"rasterize: {name} must have shape {pretty} (N = {n}), got {list(t.shape)}")
     if not t.is_floating_point():
         raise ValueError(f"rasterize: {name} must be a floating-point tensor, got {t.dtype}")
-    if t.numel() and not bool(torch.isfinite(t).all()):
+    # A finite sum means every value is finite (a NaN or an inf would carry into it) in one
+    # pass without temporaries; only when it is not (or it overflowed) is each value looked at.
+    if t.numel() and not bool(torch.isfinite(t.sum())) and not bool(torch.isfinite(t).all()):
         bad = int((~torch.isfinite(t)).sum())
         raise ValueError(f"rasterize: {name} contains {bad} NaN/inf value(s)")
 
@@ -83,18 +85,21 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
 
     from psimap.render.project import project_surfels
 
-    proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
-
     use_native = backend == "native" or (backend == "auto" and device.type == "cpu" and native_available())
     if use_native:
         try:
-            from psimap.render.native import rasterize_native
+            from psimap.render.native import project_surfels as project_native, rasterize_native
         except Exception as exc:   # an unbuilt extension is the user's setup, not a bug
             raise PsimapError(f"native renderer backend is not available ({exc}); "
                               f"reinstall psimap to build it, or use backend='reference'") from exc
+        # Camera gradients (a pose being optimised) exist only in the torch projection.
+        native_stage1 = device.type == "cpu" and not (viewmat.requires_grad or K.requires_grad)
+        proj = (project_native if native_stage1 else project_surfels)(
+            means, quats, scales, opacities, viewmat, K, width, height, near, far)
         return rasterize_native(proj, opacities, colors, features, width, height, topk, tiles,
                                 near, far, background)
     from psimap.render.reference import rasterize_reference
 
+    proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
     return rasterize_reference(proj, opacities, colors, features, width, height, topk=topk, tiles=tiles,
                                near=near, far=far, background=background)

@@ -1,9 +1,11 @@
-"""Native CPU backend of the renderer: stages 2-3 of SPEC.md in C++ (psimap/render/csrc).
+"""Native CPU backend of the renderer: stages 1-3 of SPEC.md in C++ (psimap/render/csrc).
 
 The extension `psimap.render._native` takes and returns contiguous float32 / int32 numpy buffers;
-this module wraps it in a `torch.autograd.Function` whose backward returns gradients with respect
-to the stage-1 outputs (T, center, depth_key, normal_c) and opacities / colors / features, which
-torch autograd then chains through `project_surfels` into means / quats / scales.
+this module wraps it in two `torch.autograd.Function`s: `project_surfels` (stage 1, the C++ twin of
+psimap/render/project.py's torch reference of the same name) and the rasterizer, whose backward
+returns gradients with respect to the stage-1 outputs (T, center, depth_key, normal_c) and
+opacities / colors / features; autograd chains those through the projection's backward into
+means / quats / scales.
 """
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ from psimap.render import _native
 from psimap.render.output import RenderOutput
 from psimap.render.project import Projected
 
-# Tests set this: every output buffer is filled with NaN (-1 for ints) before the kernels run, so a
+# Tests set this: every output buffer is filled with NaN (-1 for ints, 255 for flags) before the kernels run, so a
 # pixel or surfel the kernels forget to write shows up instead of passing as stale memory.
 POISON_OUTPUTS = False
 MAX_TOPK = _native.MAX_TOPK
@@ -33,13 +35,75 @@ def get_num_threads() -> int:
 
 def _empty(shape, dtype=np.float32) -> np.ndarray:
     if POISON_OUTPUTS:
-        return np.full(shape, -1 if np.issubdtype(dtype, np.integer) else np.nan, dtype=dtype)
+        if np.issubdtype(dtype, np.integer):
+            return np.full(shape, np.iinfo(dtype).max if np.iinfo(dtype).min == 0 else -1, dtype=dtype)
+        return np.full(shape, np.nan, dtype=dtype)
     return np.empty(shape, dtype=dtype)
 
 
 def _f32(t: torch.Tensor) -> np.ndarray:
     """Contiguous float32 numpy view (copy only when dtype/layout require it)."""
     return np.ascontiguousarray(t.detach().to(torch.float32).cpu().numpy())
+
+
+class _ProjectNative(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, frame):
+        # means [N,3], quats [N,4], scales [N,2], opacities [N] -> T [N,3,3], center [N,2],
+        # depth_key [N], normal_c [N,3] (differentiable) + valid [N], box_precise / box_circle [N,4].
+        dtype = means.dtype
+        suffix = "f64" if dtype == torch.float64 else "f32"
+        np_dtype = np.float64 if suffix == "f64" else np.float32
+        arrays = [np.ascontiguousarray(t.detach().to(dtype).numpy()) for t in (means, quats, scales, opacities)]
+        n = arrays[3].shape[0]
+        T, center, key = _empty((n, 3, 3), np_dtype), _empty((n, 2), np_dtype), _empty((n,), np_dtype)
+        normal = _empty((n, 3), np_dtype)
+        valid, flip = _empty((n,), np.uint8), _empty((n,), np.uint8)
+        box_p, box_c = _empty((n, 4), np.int32), _empty((n, 4), np.int32)
+        ctx.set_materialize_grads(False)   # unused outputs' gradients arrive as None
+        getattr(_native, "project_forward_" + suffix)(*arrays, *frame, T, center, key, normal, valid, flip,
+                                                      box_p, box_c)
+        ctx.frame, ctx.arrays, ctx.masks, ctx.suffix, ctx.dtype = frame, arrays, (valid, flip), suffix, dtype
+        valid_t = torch.from_numpy(valid.view(np.bool_))
+        ctx.mark_non_differentiable(valid_t)
+        return (torch.from_numpy(T), torch.from_numpy(center), torch.from_numpy(key),
+                torch.from_numpy(normal), valid_t, torch.from_numpy(box_p), torch.from_numpy(box_c))
+
+    @staticmethod
+    def backward(ctx, g_T, g_center, g_key, g_normal, _valid, _box_p, _box_c):
+        arrays = ctx.arrays
+        n = arrays[3].shape[0]
+        np_dtype = arrays[0].dtype
+        as_np = lambda g, shape: (np.zeros(shape, np_dtype) if g is None  # noqa: E731
+                                  else np.ascontiguousarray(g.detach().to(ctx.dtype).numpy()))
+        grads_in = [as_np(g_T, (n, 3, 3)), as_np(g_center, (n, 2)), as_np(g_key, (n,)), as_np(g_normal, (n, 3))]
+        g_means, g_quats, g_scales = _empty((n, 3), np_dtype), _empty((n, 4), np_dtype), _empty((n, 2), np_dtype)
+        getattr(_native, "project_backward_" + ctx.suffix)(*arrays, *ctx.frame, *ctx.masks, *grads_in,
+                                                           g_means, g_quats, g_scales)
+        return torch.from_numpy(g_means), torch.from_numpy(g_quats), torch.from_numpy(g_scales), None, None
+
+
+def project_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                    opacities: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
+                    width: int, height: int, near: float = 0.2, far: float = 1000.0) -> Projected:
+    """Stage 1 of SPEC.md in C++: the native twin of psimap.render.project.project_surfels (the
+    readable torch reference, which tests hold this one to), differentiable in means / quats /
+    scales. means: [N, 3], quats: [N, 4] (w, x, y, z), scales: [N, 2], opacities: [N] on the CPU,
+    float32 or float64; viewmat: [4, 4] world-to-camera (OpenCV), K: [3, 3], both without
+    gradients (camera gradients need the torch reference). Non-finite surfels are culled, never NaN."""
+    if means.device.type != "cpu":
+        raise ValueError(f"project_surfels: the native backend runs on CPU tensors, got {means.device}")
+    if viewmat.requires_grad or K.requires_grad:
+        raise ValueError("project_surfels: the native projection has no camera gradients; "
+                         "use psimap.render.project.project_surfels for a differentiable camera")
+    dtype = means.dtype if means.dtype in (torch.float32, torch.float64) else torch.float32
+    frame = (np.ascontiguousarray(viewmat.detach().to(torch.float64).cpu().numpy()),
+             np.ascontiguousarray(K.detach().to(torch.float64).cpu().numpy()),
+             int(width), int(height), float(near), float(far))
+    T, center, key, normal, valid, box_p, box_c = _ProjectNative.apply(
+        means.to(dtype), quats.to(dtype), scales.to(dtype), opacities.to(dtype), frame)
+    return Projected(T=T, center=center, depth_key=key, normal_c=normal, valid=valid,
+                     box_precise=box_p, box_circle=box_c)
 
 
 @dataclass
@@ -52,6 +116,7 @@ class _Plan:
     width: int
     height: int
     topk: int                # 0 = blend features over every surfel
+    exact_footprint: bool    # precise tiles: cull 4x4 pixel blocks by the surfel's footprint too
     near: float
     far: float
     background: np.ndarray   # [3] float32
@@ -61,7 +126,7 @@ class _Plan:
 def _kernel_args(plan: _Plan, arrays: list[np.ndarray], channels: int) -> tuple:
     T, center, depth_key, normal, opac, colors, feats = arrays
     return (T, center, depth_key, normal, opac, colors, feats, channels, plan.box, plan.offsets, plan.ids,
-            plan.width, plan.height, plan.topk, plan.near, plan.far, plan.background)
+            plan.width, plan.height, plan.topk, plan.exact_footprint, plan.near, plan.far, plan.background)
 
 
 class _RasterizeNative(torch.autograd.Function):
@@ -71,6 +136,9 @@ class _RasterizeNative(torch.autograd.Function):
         # features [N,C] -> rgb [H,W,3], alpha, depth, median [H,W], normal [H,W,3], distortion,
         # features [H,W,C].
         H, W, C, K = plan.height, plan.width, features.shape[1], plan.topk
+        # Outputs the loss does not use come back as None (the backward passes zeros to the
+        # kernel) instead of torch allocating and filling a zero image for each.
+        ctx.set_materialize_grads(False)
         arrays = [_f32(t) for t in (T, center, depth_key, normal_c, opacities, colors, features)]
         rgb, alpha, depth = _empty((H, W, 3)), _empty((H, W)), _empty((H, W))
         median, normal, dist = _empty((H, W)), _empty((H, W, 3)), _empty((H, W))
@@ -138,6 +206,7 @@ def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Ten
     bg = (np.zeros(3, np.float32) if background is None
           else np.ascontiguousarray(background.detach().to(torch.float32).cpu().numpy().reshape(3)))
     plan = _Plan(box=box_np, offsets=offsets, ids=ids, width=int(width), height=int(height), topk=k,
+                 exact_footprint=tiles == "precise",
                  near=float(near), far=float(far), background=bg)
     outs = _RasterizeNative.apply(proj.T, proj.center, proj.depth_key, proj.normal_c,
                                   opacities, colors, features, plan)

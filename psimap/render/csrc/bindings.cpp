@@ -8,6 +8,7 @@
 #include <nanobind/stl/tuple.h>
 #include <omp.h>
 
+#include "project.h"
 #include "rasterize.h"
 
 namespace nb = nanobind;
@@ -46,8 +47,8 @@ Common make_common(Array<const float>& T, Array<const float>& center,
                    Array<const float>& opacity, Array<const float>& color,
                    Array<const float>& feature, int channels, Array<const int32_t>& box,
                    Array<const int32_t>& offsets,
-                   Array<const int32_t>& ids, int width, int height, int topk, float near,
-                   float far, Array<const float>& background) {
+                   Array<const int32_t>& ids, int width, int height, int topk, bool exact_footprint,
+                   float near, float far, Array<const float>& background) {
     Common c;
     const size_t n = opacity.size();
     if (width <= 0 || height <= 0) throw std::invalid_argument("psimap native: empty image");
@@ -78,6 +79,7 @@ Common make_common(Array<const float>& T, Array<const float>& center,
     c.cfg.width = width;
     c.cfg.height = height;
     c.cfg.topk = topk;
+    c.cfg.exact_footprint = exact_footprint;
     c.cfg.near = near;
     c.cfg.far = far;
     const float* b = checked(background, 3, "background");
@@ -107,6 +109,68 @@ ForwardBuffers make_buffers(const Common& c, Array<float>& rgb, Array<float>& al
     return b;
 }
 
+// Stage 1 for one float type F ("f32" / "f64"): the Python side picks by the inputs' dtype.
+template <typename F>
+void bind_project(nb::module_& m, const char* suffix) {
+    auto inputs = [](Array<const F>& means, Array<const F>& quats, Array<const F>& scales,
+                     Array<const F>& opacity, Array<const double>& viewmat, Array<const double>& K,
+                     int width, int height, double near, double far) {
+        ProjectInputs<F> in;
+        const size_t n = opacity.size();
+        in.n = static_cast<int64_t>(n);
+        in.means = checked(means, 3 * n, "means");
+        in.quats = checked(quats, 4 * n, "quats");
+        in.scales = checked(scales, 2 * n, "scales");
+        in.opacity = opacity.data();
+        in.viewmat = checked(viewmat, 16, "viewmat");
+        in.K = checked(K, 9, "K");
+        if (width <= 0 || height <= 0) throw std::invalid_argument("psimap native: empty image");
+        in.width = width;
+        in.height = height;
+        in.near = near;
+        in.far = far;
+        return in;
+    };
+    m.def(
+        (std::string("project_forward_") + suffix).c_str(),
+        [inputs](Array<const F> means, Array<const F> quats, Array<const F> scales,
+                 Array<const F> opacity, Array<const double> viewmat, Array<const double> K, int width,
+                 int height, double near, double far, Array<F> T, Array<F> center, Array<F> depth_key,
+                 Array<F> normal, Array<uint8_t> valid, Array<uint8_t> flip, Array<int32_t> box_precise,
+                 Array<int32_t> box_circle) {
+            ProjectInputs<F> in = inputs(means, quats, scales, opacity, viewmat, K, width, height, near, far);
+            const size_t n = static_cast<size_t>(in.n);
+            ProjectOutputs<F> out{checked(T, 9 * n, "T"), checked(center, 2 * n, "center"),
+                                  checked(depth_key, n, "depth_key"), checked(normal, 3 * n, "normal_c"),
+                                  checked(valid, n, "valid"), checked(flip, n, "flip"),
+                                  checked(box_precise, 4 * n, "box_precise"),
+                                  checked(box_circle, 4 * n, "box_circle")};
+            nb::gil_scoped_release release;
+            project_forward(in, out);
+        },
+        "Stage 1 (SPEC.md): writes T, center, depth_key, normal_c, valid, flip and both tile boxes.");
+    m.def(
+        (std::string("project_backward_") + suffix).c_str(),
+        [inputs](Array<const F> means, Array<const F> quats, Array<const F> scales,
+                 Array<const F> opacity, Array<const double> viewmat, Array<const double> K, int width,
+                 int height, double near, double far, Array<const uint8_t> valid,
+                 Array<const uint8_t> flip, Array<const F> gT, Array<const F> g_center,
+                 Array<const F> g_depth_key, Array<const F> g_normal, Array<F> g_means,
+                 Array<F> g_quats, Array<F> g_scales) {
+            ProjectInputs<F> in = inputs(means, quats, scales, opacity, viewmat, K, width, height, near, far);
+            const size_t n = static_cast<size_t>(in.n);
+            ProjectGrads<F> g{checked(gT, 9 * n, "grad T"), checked(g_center, 2 * n, "grad center"),
+                              checked(g_depth_key, n, "grad depth_key"),
+                              checked(g_normal, 3 * n, "grad normal_c"), checked(g_means, 3 * n, "grad means"),
+                              checked(g_quats, 4 * n, "grad quats"), checked(g_scales, 2 * n, "grad scales")};
+            const uint8_t* v = checked(valid, n, "valid");
+            const uint8_t* fl = checked(flip, n, "flip");
+            nb::gil_scoped_release release;
+            project_backward(in, v, fl, g);
+        },
+        "Backward of stage 1: writes dL/d(means, quats, scales).");
+}
+
 }  // namespace
 
 NB_MODULE(_native, m) {
@@ -116,6 +180,8 @@ NB_MODULE(_native, m) {
     m.def("get_num_threads", []() { return omp_get_max_threads(); });
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
+    bind_project<float>(m, "f32");
+    bind_project<double>(m, "f64");
 
     m.def(
         "bin_tiles",
@@ -142,14 +208,15 @@ NB_MODULE(_native, m) {
            Array<const float> normal, Array<const float> opacity, Array<const float> color,
            Array<const float> feature, int channels, Array<const int32_t> box,
            Array<const int32_t> offsets,
-           Array<const int32_t> ids, int width, int height, int topk, float near, float far,
+           Array<const int32_t> ids, int width, int height, int topk, bool exact_footprint, float near, float far,
            Array<const float> background, Array<float> out_rgb, Array<float> out_alpha,
            Array<float> out_depth, Array<float> out_median, Array<float> out_normal,
            Array<float> out_distortion, Array<float> out_feature, Array<float> t_final,
            Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
            Array<int32_t> topk_pos) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
-                                   box, offsets, ids, width, height, topk, near, far, background);
+                                   box, offsets, ids, width, height, topk, exact_footprint, near, far,
+                                   background);
             ForwardBuffers b = make_buffers(c, out_rgb, out_alpha, out_depth, out_median,
                                             out_normal, out_distortion, out_feature, t_final,
                                             n_last, median_pos, dist_sums, topk_pos);
@@ -164,7 +231,7 @@ NB_MODULE(_native, m) {
            Array<const float> normal, Array<const float> opacity, Array<const float> color,
            Array<const float> feature, int channels, Array<const int32_t> box,
            Array<const int32_t> offsets,
-           Array<const int32_t> ids, int width, int height, int topk, float near, float far,
+           Array<const int32_t> ids, int width, int height, int topk, bool exact_footprint, float near, float far,
            Array<const float> background, Array<float> depth, Array<float> t_final,
            Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
            Array<int32_t> topk_pos, Array<const float> g_rgb, Array<const float> g_alpha,
@@ -173,7 +240,8 @@ NB_MODULE(_native, m) {
            Array<float> g_center, Array<float> g_depth_key, Array<float> g_normal_c,
            Array<float> g_opacity, Array<float> g_color, Array<float> g_feat) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
-                                   box, offsets, ids, width, height, topk, near, far, background);
+                                   box, offsets, ids, width, height, topk, exact_footprint, near, far,
+                                   background);
             const size_t px = static_cast<size_t>(width) * height;
             const size_t n = static_cast<size_t>(c.in.n);
             ForwardBuffers s{};

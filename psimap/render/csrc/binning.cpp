@@ -2,6 +2,7 @@
 // surfel index). One global stable sort, then every thread fills the tiles of its own band of
 // tile rows by scanning surfels in sorted order: lists come out sorted, without atomics.
 #include <algorithm>
+#include <cmath>
 #include <numeric>
 
 #include <omp.h>
@@ -72,18 +73,86 @@ void bin_tiles(const int32_t* boxes, const uint8_t* valid, const float* depth_ke
     }
 }
 
+namespace {
+
+Footprint footprint_of(const SurfelParams& s) {
+    Footprint f{};
+    f.any = s.half_rho_cut >= 0.0f;
+    // Low-pass: valid when rho2 <= ln 255, tried only when rho2 <= half_rho_cut.
+    f.cx = s.cx;
+    f.cy = s.cy;
+    f.r2 = std::min(static_cast<double>(kLowPass2), static_cast<double>(s.half_rho_cut));
+    // 3D branch: tried only when u^2 + v^2 <= min(chi^2, 2 half_rho_cut).
+    const double r3 = std::min(static_cast<double>(kChi2), 2.0 * s.half_rho_cut);
+    f.ellipse = false;
+    if (!f.any || r3 <= 0.0) return f;
+    double T[9];
+    for (int k = 0; k < 9; ++k) T[k] = s.T[k];
+    double Cs[9];  // dual conic T diag(1, 1, -1/r3) T^T
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k)
+            Cs[3 * i + k] = T[3 * i] * T[3 * k] + T[3 * i + 1] * T[3 * k + 1] - T[3 * i + 2] * T[3 * k + 2] / r3;
+    const double c22 = Cs[8];
+    if (!(c22 < 0.0)) return f;  // the disk reaches the camera plane: unbounded in the image
+    f.ex = Cs[2] / c22;
+    f.ey = Cs[5] / c22;
+    const double m00 = (Cs[2] * Cs[6] - Cs[0] * c22) / (c22 * c22);
+    const double m01 = (Cs[2] * Cs[7] - Cs[1] * c22) / (c22 * c22);
+    const double m11 = (Cs[5] * Cs[7] - Cs[4] * c22) / (c22 * c22);
+    f.a = m11;
+    f.b = -m01;
+    f.c = m00;
+    f.det = m00 * m11 - m01 * m01;
+    // A nearly flat ellipse (an edge-on surfel) is a segment the test cannot resolve: box only.
+    f.ellipse = std::isfinite(f.det) && std::isfinite(f.ex) && std::isfinite(f.ey) &&
+                f.det > 1e-6 * m00 * m11 && m00 > 0.0 && m11 > 0.0;
+    return f;
+}
+
+// Minimum over dy in [lo, hi] of a dx^2 + 2 b dx dy + c dy^2 (c > 0: convex in dy).
+double edge_min(double a, double b, double c, double dx, double lo, double hi) {
+    const double dy = std::min(std::max(-b * dx / c, lo), hi);
+    return a * dx * dx + 2.0 * b * dx * dy + c * dy * dy;
+}
+
+// Whether the pixel centres x0 <= x <= x1, y0 <= y <= y1 may hold a pixel of the footprint. The
+// rectangle is grown by a twentieth of a pixel and the ellipse by 0.1 % against rounding: a miss
+// is then a pixel the per-pixel test (SPEC.md) would reject too.
+bool meets(const Footprint& f, double x0, double y0, double x1, double y1) {
+    if (!f.any) return false;
+    constexpr double kGrow = 0.05, kRel = 1e-3;
+    x0 -= kGrow;
+    y0 -= kGrow;
+    x1 += kGrow;
+    y1 += kGrow;
+    if (f.r2 >= 0.0) {
+        const double dx = std::max({x0 - f.cx, 0.0, f.cx - x1}), dy = std::max({y0 - f.cy, 0.0, f.cy - y1});
+        if (dx * dx + dy * dy <= f.r2 * (1.0 + kRel)) return true;
+    }
+    if (!f.ellipse) return true;  // the box alone decides
+    if (f.ex >= x0 && f.ex <= x1 && f.ey >= y0 && f.ey <= y1) return true;
+    // Minimum of q(d) = d^T adj(M) d over the rectangle's edges (d = x - e); inside when q <= det.
+    const double lim = f.det * (1.0 + kRel);
+    const double lx = x0 - f.ex, hx = x1 - f.ex, ly = y0 - f.ey, hy = y1 - f.ey;
+    if (edge_min(f.a, f.b, f.c, lx, ly, hy) <= lim || edge_min(f.a, f.b, f.c, hx, ly, hy) <= lim) return true;
+    // Horizontal edges: swap the roles of x and y (q = c dy^2 + 2 b dx dy + a dx^2).
+    return edge_min(f.c, f.b, f.a, ly, lx, hx) <= lim || edge_min(f.c, f.b, f.a, hy, lx, hx) <= lim;
+}
+
+}  // namespace
+
 void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
-                 std::vector<SurfelParams>& params) {
+                 std::vector<SurfelParams>& params, std::vector<Footprint>* footprints) {
     const int32_t begin = bins.offsets[t], end = bins.offsets[t + 1];
     params.resize(end - begin);
     for (int32_t k = begin; k < end; ++k) {
         const int64_t i = bins.ids[k];
         SurfelParams& s = params[k - begin];
         for (int j = 0; j < 9; ++j) s.T[j] = in.T[9 * i + j];
-        s.x0 = in.box[4 * i];
-        s.y0 = in.box[4 * i + 1];
-        s.x1 = in.box[4 * i + 2];
-        s.y1 = in.box[4 * i + 3];
+        s.x0 = static_cast<float>(in.box[4 * i]);
+        s.y0 = static_cast<float>(in.box[4 * i + 1]);
+        s.x1 = static_cast<float>(in.box[4 * i + 2]);
+        s.y1 = static_cast<float>(in.box[4 * i + 3]);
         s.cx = in.center[2 * i];
         s.cy = in.center[2 * i + 1];
         s.depth_key = in.depth_key[i];
@@ -94,19 +163,28 @@ void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
             s.normal[j] = in.normal[3 * i + j];
         }
     }
+    if (footprints) {
+        footprints->resize(params.size());
+        for (size_t j = 0; j < params.size(); ++j) (*footprints)[j] = footprint_of(params[j]);
+    }
 }
 
 void block_lists(const std::vector<SurfelParams>& params, int tile_x0, int tile_y0,
-                 std::vector<int32_t>& pos, int32_t* starts) {
+                 std::vector<int32_t>& pos, int32_t* starts, const std::vector<Footprint>* footprints) {
     pos.clear();
     const int n = static_cast<int>(params.size());
     for (int b = 0; b < kBlocks * kBlocks; ++b) {
         starts[b] = static_cast<int32_t>(pos.size());
         const int bx0 = tile_x0 + (b % kBlocks) * kBlockPx, by0 = tile_y0 + (b / kBlocks) * kBlockPx;
-        const int bx1 = bx0 + kBlockPx, by1 = by0 + kBlockPx;
+        const float fx0 = static_cast<float>(bx0), fy0 = static_cast<float>(by0);
+        const float fx1 = fx0 + kBlockPx, fy1 = fy0 + kBlockPx;
         for (int j = 0; j < n; ++j) {
             const SurfelParams& s = params[j];
-            if (s.x0 < bx1 && s.x1 > bx0 && s.y0 < by1 && s.y1 > by0) pos.push_back(j);
+            if (!(s.x0 < fx1 && s.x1 > fx0 && s.y0 < fy1 && s.y1 > fy0)) continue;
+            // Pixel centres of the block: bx0 .. bx0 + kBlockPx - 1 (and y alike).
+            if (footprints && !meets((*footprints)[j], bx0, by0, bx0 + kBlockPx - 1, by0 + kBlockPx - 1))
+                continue;
+            pos.push_back(j);
         }
     }
     starts[kBlocks * kBlocks] = static_cast<int32_t>(pos.size());

@@ -34,6 +34,9 @@ inline int tiles_along(int pixels) { return (pixels + kTile - 1) / kTile; }
 struct RasterConfig {
     int width = 0, height = 0;
     int topk = 0;  // 0: blend features over every surfel
+    // Precise tiles: besides its tight box, a surfel reaches a 4x4 pixel block only when the block
+    // meets its footprint (the ellipse where alpha can reach 1/255, and the low-pass disk).
+    bool exact_footprint = false;
     float near = 0.2f, far = 1000.0f;
     float background[3] = {0.0f, 0.0f, 0.0f};
 };
@@ -84,17 +87,30 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
 void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const RasterConfig& cfg,
                         const ForwardBuffers& saved, const BackwardGrads& g);
 
-// Gathers tile `t`'s surfels into `params` (front to back).
+// Where a surfel can reach alpha >= 1/255 in the image (for culling pixel blocks): the ellipse
+// (x - e)^T adj(M) (x - e) <= det(M) (M: the 2x2 shape of the image of the disk u^2 + v^2 <= r3^2,
+// r3^2 = min(chi^2, 2 half_rho_cut)) united with the low-pass disk |x - c|^2 <= r2^2.
+struct Footprint {
+    double ex, ey;        // ellipse centre
+    double a, b, c, det;  // adj(M) = [[a, b], [b, c]], det(M)
+    bool ellipse;         // false: unbounded or degenerate, test the box only
+    bool any;             // false: nothing of this surfel reaches 1/255
+    double cx, cy, r2;    // low-pass disk centre and squared radius (r2 < 0: none)
+};
+
+// Gathers tile `t`'s surfels into `params` (front to back); `footprints` too when not null.
 void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
-                 std::vector<SurfelParams>& params);
+                 std::vector<SurfelParams>& params, std::vector<Footprint>* footprints = nullptr);
 
 // A tile is split in kBlocks x kBlocks pixel blocks; each pixel only walks the surfels whose box
 // meets its block (tile-list positions, front to back): positions
 // pos[starts[b] .. starts[b+1]) for block b = by * kBlocks + bx.
 constexpr int kBlockPx = 4;
 constexpr int kBlocks = kTile / kBlockPx;
+// With `footprints`, a surfel joins a block only when the block also meets its footprint.
 void block_lists(const std::vector<SurfelParams>& params, int tile_x0, int tile_y0,
-                 std::vector<int32_t>& pos, int32_t* starts);
+                 std::vector<int32_t>& pos, int32_t* starts,
+                 const std::vector<Footprint>* footprints = nullptr);
 
 inline int block_of(int px, int py, int tile_x0, int tile_y0) {
     return ((py - tile_y0) / kBlockPx) * kBlocks + (px - tile_x0) / kBlockPx;

@@ -38,6 +38,8 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
         geo.assign(static_cast<size_t>(N) * kGSlots, 0.0f);
         feat.assign(static_cast<size_t>(N) * C, 0.0f);
         std::vector<SurfelParams> params;
+        std::vector<Footprint> footprints;
+        std::vector<Footprint>* fp = cfg.exact_footprint ? &footprints : nullptr;
         std::vector<int32_t> block_pos;
         int32_t block_start[kBlocks * kBlocks + 1];
         std::vector<float> tile_geo, tile_feat;
@@ -45,12 +47,12 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
         for (int t = 0; t < tiles; ++t) {
             const int n = bins.offsets[t + 1] - bins.offsets[t];
             if (n == 0) continue;
-            gather_tile(in, bins, t, params);
+            gather_tile(in, bins, t, params, fp);
             const int32_t* ids = bins.ids + bins.offsets[t];
             tile_geo.assign(static_cast<size_t>(n) * kGSlots, 0.0f);
             tile_feat.assign(static_cast<size_t>(n) * C, 0.0f);
             const int tx = t % bins.tiles_x, ty = t / bins.tiles_x;
-            block_lists(params, tx * kTile, ty * kTile, block_pos, block_start);
+            block_lists(params, tx * kTile, ty * kTile, block_pos, block_start, fp);
             const int px1 = std::min(W, (tx + 1) * kTile), py1 = std::min(H, (ty + 1) * kTile);
             for (int py = ty * kTile; py < py1; ++py) {
                 for (int px = tx * kTile; px < px1; ++px) {

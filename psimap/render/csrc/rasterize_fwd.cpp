@@ -18,15 +18,17 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
 #pragma omp parallel reduction(+ : evaluated)
     {
         std::vector<SurfelParams> params;
+        std::vector<Footprint> footprints;
+        std::vector<Footprint>* fp = cfg.exact_footprint ? &footprints : nullptr;
         std::vector<int32_t> block_pos;
         int32_t block_start[kBlocks * kBlocks + 1];
         std::vector<float> feat_acc(C);
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < tiles; ++t) {
-            gather_tile(in, bins, t, params);
+            gather_tile(in, bins, t, params, fp);
             const int32_t* ids = bins.ids + bins.offsets[t];
             const int tx = t % bins.tiles_x, ty = t / bins.tiles_x;
-            block_lists(params, tx * kTile, ty * kTile, block_pos, block_start);
+            block_lists(params, tx * kTile, ty * kTile, block_pos, block_start, fp);
             const int px1 = std::min(W, (tx + 1) * kTile), py1 = std::min(H, (ty + 1) * kTile);
             for (int py = ty * kTile; py < py1; ++py) {
                 for (int px = tx * kTile; px < px1; ++px) {
@@ -39,7 +41,7 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                     int median_pos = -1, last = 0;
                     float top_w[kMaxTopK];
                     int top_pos[kMaxTopK];
-                    int top_count = 0;
+                    int top_count = 0, top_evict = 0;
                     if (K == 0) std::fill(feat_acc.begin(), feat_acc.end(), 0.0f);
                     const int b = block_of(px, py, tx * kTile, ty * kTile);
                     for (int k = block_start[b]; k < block_start[b + 1]; ++k) {
@@ -69,7 +71,7 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                         D += w * m;
                         D2 += w * m * m;
                         if (K > 0) {
-                            topk_insert(top_w, top_pos, top_count, K, w, j);
+                            topk_insert(top_w, top_pos, top_count, top_evict, K, w, j);
                         } else if (C > 0) {
                             const float* f = in.feature + static_cast<int64_t>(ids[j]) * C;
                             for (int c = 0; c < C; ++c) feat_acc[c] += w * f[c];
@@ -107,14 +109,19 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                             top_pos[b] = pa;
                             top_w[b] = wa;
                         }
-                        std::fill(fo, fo + C, 0.0f);
+                        // Summed in the thread's buffer (the compiler cannot prove `fo` apart
+                        // from the features), stored once.
+                        float* acc = feat_acc.data();
+                        std::fill(acc, acc + C, 0.0f);
                         int32_t* saved = out.topk_pos + pix * K;
                         for (int k = 0; k < top_count; ++k) {
                             saved[k] = top_pos[k];
                             const float* f = in.feature + static_cast<int64_t>(ids[top_pos[k]]) * C;
-                            for (int c = 0; c < C; ++c) fo[c] += top_w[k] * f[c];
+                            const float wk = top_w[k];
+                            for (int c = 0; c < C; ++c) acc[c] += wk * f[c];
                         }
                         for (int k = top_count; k < K; ++k) saved[k] = -1;
+                        std::copy(acc, acc + C, fo);
                     } else {
                         for (int c = 0; c < C; ++c) fo[c] = feat_acc[c];
                     }

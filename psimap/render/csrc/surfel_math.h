@@ -25,7 +25,8 @@ constexpr float kAlphaOutMin = 1e-6f;
 // One surfel's parameters gathered for a tile (array of structs: one cache line-ish each).
 struct SurfelParams {
     float T[9];          // splat-to-pixel homography, row major
-    int x0, y0, x1, y1;  // pixel box (half-open) holding every pixel the surfel can reach
+    float x0, y0, x1, y1;  // pixel box (half-open) holding every pixel the surfel can reach (float:
+                           // compared with float pixel coordinates, no int conversion per test)
     float cx, cy;        // projected centre
     float depth_key;     // camera depth of the centre
     float opacity;
@@ -160,17 +161,24 @@ PSIMAP_HD void eval_surfel_backward(const SurfelParams& s, float x, float y, con
     g_T[8] += x * ga2 + y * gb2;
 }
 
-// Insert weight w of tile-list position pos into a descending top-K list; ties keep the earlier.
-PSIMAP_HD void topk_insert(float* top_w, int* top_pos, int& count, int K, float w, int pos) {
-    if (count == K && !(w > top_w[K - 1])) return;
-    int i = count < K ? count++ : K - 1;
-    while (i > 0 && top_w[i - 1] < w) {
-        top_w[i] = top_w[i - 1];
-        top_pos[i] = top_pos[i - 1];
-        --i;
+// Keep the K largest weights seen so far (ties: the earlier position stays). The list is not
+// sorted: `evict` is the slot the next larger weight replaces, the smallest weight (the latest
+// position among equal ones). Most blended surfels of a pixel do not enter a full list, so the
+// common case is one comparison, not an insertion that shifts the list.
+PSIMAP_HD void topk_insert(float* top_w, int* top_pos, int& count, int& evict, int K, float w, int pos) {
+    if (count < K) {
+        top_w[count] = w;
+        top_pos[count] = pos;
+        if (++count < K) return;
+    } else {
+        if (!(w > top_w[evict])) return;
+        top_w[evict] = w;
+        top_pos[evict] = pos;
     }
-    top_w[i] = w;
-    top_pos[i] = pos;
+    int e = 0;
+    for (int k = 1; k < K; ++k)
+        if (top_w[k] < top_w[e] || (top_w[k] == top_w[e] && top_pos[k] > top_pos[e])) e = k;
+    evict = e;
 }
 
 }  // namespace psimap
