@@ -69,6 +69,7 @@ class SceneObject:
     texture_coverage: float = 0.0           # fraction of texels some view saw
     solid_pitch: float = 0.0                # voxel (m) of the solid it was closed as (0: not voxelised)
     solid_kind: str = ""                    # how (exporters.solidify): "enclosed" | "carved" | "shell" | ""
+    detail: float = 0.0                     # finest detail (m) its own surfels resolve: the voxel it was fused at (0: unknown)
     support_z: float | None = None          # height of the plane it rests on (None: not resting)
     measured: Measurements = field(default_factory=Measurements)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
@@ -220,7 +221,11 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     vertex_rgb = _vertex_rgb(mesh)
     obj.source = None
     if decimation_budget is None:
-        decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0, obj.solid_pitch)
+        # the visual mesh keeps what the map resolves at this object: half its own surfels' voxel
+        # (a scene's finest voxel belongs to its smallest, most finely mapped thing), no finer
+        # than the voxel solid it was closed as, and 0.5 % of its size
+        decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0, 0.5 * obj.detail,
+                                obj.solid_pitch)
     if collision_tolerance is None:
         collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
     t0 = clock.now()
@@ -560,6 +565,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                                   surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size,
                                   open_under=max((t.height for t in tops.get(item.instance_id, [])), default=None)))
         objs[-1].surfel_count = int(np.count_nonzero(members))
+        objs[-1].detail = float(getattr(item.mesh, "voxel_size", 0.0) or 0.0)
         surfels_of[item.instance_id] = surfel_points
         if item.dropped_surfels:
             objs[-1].measured.repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away "

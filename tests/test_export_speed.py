@@ -69,3 +69,55 @@ def test_clock_step_adds_wall_user_and_system_seconds():
         for _ in range(4):
             np.ones(50_000_000 // 8 * 4)
     assert timings["churn_sys_s"] > 0.01 and timings["busy_sys_s"] == sys0
+
+
+def test_face_cap_is_met_when_simplifying_to_the_cap_breaks_the_solid(monkeypatch):
+    """A small object's voxel solid that the simplifier opens at the face cap: twice the cap is
+    tried, not the tens of thousands of faces of the input kept."""
+    import trimesh
+
+    from psimap.exporters import decimate
+
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.035)      # a 7 cm ball, 20480 faces
+    real = decimate.simplify_to_count
+
+    def opens_below_1000(m, faces, method="auto"):
+        out = real(m, faces, method)
+        if faces < 1000:        # the simplifier breaks this solid at the cap
+            out = trimesh.Trimesh(out.vertices, out.faces[:-1], process=False)
+        return out
+
+    monkeypatch.setattr(decimate, "simplify_to_count", opens_below_1000)
+    unreduced = decimate.DecimationResult(mesh, len(mesh.faces), len(mesh.faces), 0.0, 0.0, 0.001)
+    dec = decimate.decimate_to_count(mesh, 600, unreduced)
+    assert dec.mesh.is_watertight
+    assert 1000 <= len(dec.mesh.faces) <= 1300 and dec.faces_after == len(dec.mesh.faces)
+    assert 0 < dec.hausdorff < 0.003
+    # nothing watertight below the input: the input comes back
+    monkeypatch.setattr(decimate, "simplify_to_count", lambda m, f, method="auto": opens_below_1000(m, 1, method))
+    assert decimate.decimate_to_count(mesh, 600, unreduced) is unreduced
+
+
+def test_a_small_object_gets_a_face_count_bounded_by_its_size():
+    """A 7 cm ball fused finely (20k faces, 0.3 mm noise) comes out with a few thousand faces at
+    most, within its error budget's reach; its own coarser surfels (detail) coarsen it further."""
+    import trimesh
+
+    from psimap.exporters.objects import finish_object, prepare_solid
+
+    rng = np.random.default_rng(0)
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=0.035)
+    ball.vertices += rng.normal(0, 0.0003, ball.vertices.shape)
+    faces = {}
+    for detail in (0.0, 0.006):
+        o = prepare_solid(ball.copy(), "ball", 1, completion="none")
+        o.detail = detail
+        o = finish_object(o, resolution=0.0005)
+        m = o.measured
+        assert m.faces_before == 20480 and m.watertight
+        assert m.faces_after <= m.face_budget <= 4000
+        assert m.decimation_error <= max(m.decimation_budget, 0.002)
+        faces[detail] = (m.faces_after, m.decimation_budget)
+    # 6 mm surfel voxels: a 3 mm budget, and fewer faces than at the 1 mm floor
+    assert faces[0.006][1] == pytest.approx(0.003) and faces[0.0][1] == pytest.approx(0.001)
+    assert faces[0.006][0] < 0.5 * faces[0.0][0]
