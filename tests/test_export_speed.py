@@ -121,3 +121,35 @@ def test_a_small_object_gets_a_face_count_bounded_by_its_size():
     # 6 mm surfel voxels: a 3 mm budget, and fewer faces than at the 1 mm floor
     assert faces[0.006][1] == pytest.approx(0.003) and faces[0.0][1] == pytest.approx(0.001)
     assert faces[0.006][0] < 0.5 * faces[0.0][0]
+
+
+def test_a_small_instance_reserves_few_tsdf_blocks_and_fuses_the_same_surface():
+    """fuse_instance reserves voxel blocks by the instance's size (exporters.instance_meshes.
+    instance_blocks): a 7 cm thing at 0.8 mm voxels ~1700 blocks, not the scene's 20,000 (~200 MB
+    zeroed per call); the hash map grows, so even 256 blocks fuse the same surface."""
+    import open3d as o3d
+    import trimesh
+
+    from psimap.camera import look_at
+    from psimap.exporters.instance_meshes import instance_blocks
+    from psimap.geometry.tsdf import fuse_tsdf
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.035)
+    voxel = 0.0008
+    assert 500 < instance_blocks(ball.vertices, voxel) < 2500
+    assert instance_blocks(ball.vertices * 40, voxel) == 20000 and instance_blocks(ball.vertices[:1], voxel) == 256
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(ball.vertices.astype(np.float32)), o3d.core.Tensor(ball.faces.astype(np.uint32)))
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    depths, c2ws = [], []
+    for a in np.linspace(0, 2 * np.pi, 4, endpoint=False):
+        c2w = look_at(np.array([0.4 * np.cos(a), 0.4 * np.sin(a), 0.15]), np.zeros(3))
+        rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(c2w)),
+                                                                   160, 120)
+        t = scene.cast_rays(rays)["t_hit"].numpy()
+        z = t * (rays.numpy()[..., 3:] @ c2w[:3, :3])[..., 2]
+        depths.append(np.where(np.isfinite(z), z, 0).astype(np.float32))
+        c2ws.append(c2w)
+    meshes = [fuse_tsdf(depths, [K] * 4, c2ws, voxel_size=voxel, trunc=4 * voxel, block_count=n) for n in (20000, 256)]
+    assert len(meshes[0].faces) > 1000 and len(meshes[0].faces) == len(meshes[1].faces)
+    np.testing.assert_allclose(meshes[0].bounds, meshes[1].bounds, atol=1e-6)
