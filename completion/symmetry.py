@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .primitives import axis_frame, circle_fit, circle_sections, support_level
+from .primitives import axis_frame, circle_fit, circle_sections, principal_axes, support_level
 from .support import UP
 
 _MIN_ARC_DEG = 90.0     # narrower arcs do not pin the axis down
@@ -23,7 +23,7 @@ def fit_revolution(points: np.ndarray, tolerance: float, support=None):
     """Returns (closed trimesh, stats dict) or (None, stats dict with the reason)."""
     import trimesh
 
-    axes = [UP] if support is not None else list(np.linalg.svd(points - points.mean(0))[2])
+    axes = [UP] if support is not None else list(principal_axes(points))
     best = None
     for axis in axes:
         R = axis_frame(np.asarray(axis, dtype=np.float64))

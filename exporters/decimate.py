@@ -120,10 +120,19 @@ def visual_face_budget(mesh, budget: float, source_faces: int = 0) -> int:
 
 
 def decimate_to_count(mesh, faces: int, fallback: DecimationResult, *, samples: int = DEFAULT_SAMPLES,
-                      seed: int = 0) -> DecimationResult:
+                      seed: int = 0, max_growth: int = 3) -> DecimationResult:
     """`mesh` simplified to about `faces` faces whatever the error (measured and reported); a
-    watertight input must stay watertight, else `fallback` comes back."""
+    watertight input must stay watertight: when no simplification to `faces` does, twice and four
+    times as many are tried (max_growth steps of 2x) before `fallback` comes back: fallback is
+    often the unreduced input (a voxel solid's tens of thousands of faces on a small object)."""
     out = simplify_to_count(mesh, faces)
+    for _ in range(max_growth):
+        if not (mesh.is_watertight and not out.is_watertight):
+            break
+        faces *= 2
+        if faces >= len(fallback.mesh.faces):
+            return fallback
+        out = simplify_to_count(mesh, faces)
     if mesh.is_watertight and not out.is_watertight:
         return fallback
     haus, mean = surface_distance(mesh, out, samples=samples, seed=seed)

@@ -9,11 +9,11 @@ checkpoint.
 from __future__ import annotations
 
 import re
-import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from psimap.exporters import clock
 from psimap.exporters.roles import Reason, Role
 
 
@@ -39,7 +39,7 @@ class Measurements:
     completed: bool = False
     completion_method: str = "none"
     repair_steps: list = field(default_factory=list)
-    timings: dict = field(default_factory=dict, repr=False)   # seconds per asset step
+    timings: dict = field(default_factory=dict, repr=False)   # wall / user / system seconds per asset step (clock)
 
 
 @dataclass
@@ -69,6 +69,7 @@ class SceneObject:
     texture_coverage: float = 0.0           # fraction of texels some view saw
     solid_pitch: float = 0.0                # voxel (m) of the solid it was closed as (0: not voxelised)
     solid_kind: str = ""                    # how (exporters.solidify): "enclosed" | "carved" | "shell" | ""
+    detail: float = 0.0                     # finest detail (m) its own surfels resolve: the voxel it was fused at (0: unknown)
     support_z: float | None = None          # height of the plane it rests on (None: not resting)
     measured: Measurements = field(default_factory=Measurements)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
@@ -147,7 +148,7 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
     obj.measured.faces_before = int(len(getattr(mesh, "faces", [])))
     # clean first (floaters, degenerate faces), let completion close a partial scan, then require
     # a sound watertight solid
-    t0 = time.perf_counter()
+    t0 = clock.now()
     pre = repair_mesh(mesh, need_volume=False)
     if not pre.ok:
         obj.skip(Reason.REPAIR, f"repair: {pre.reason}")
@@ -158,9 +159,8 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
     if completion != "none" and open_under is None:
         from psimap.completion import CompletionContext, complete
 
-        t1 = time.perf_counter()
-        res = complete(m, replace(context or CompletionContext(), label=label, method=completion))
-        obj.measured.timings["completion_s"] = time.perf_counter() - t1
+        with clock.step(obj.measured.timings, "completion"):
+            res = complete(m, replace(context or CompletionContext(), label=label, method=completion))
         obj.measured.completed, obj.measured.completion_method = bool(res.completed), str(res.method)
         if res.completed and res.mesh is not None:
             m = res.mesh
@@ -197,7 +197,9 @@ def prepare_solid(mesh, label: str, instance_id: int, *, semantic_id: int = 0, c
         if grew:
             obj.measured.repair_steps.append("extended down to its support")
     obj.mesh = m
-    obj.measured.timings["repair_s"] = time.perf_counter() - t0 - obj.measured.timings.get("completion_s", 0.0)
+    clock.add(obj.measured.timings, "repair", t0)
+    for suffix in clock.SUFFIXES:       # repair = everything here but the completion
+        obj.measured.timings["repair" + suffix] -= obj.measured.timings.get("completion" + suffix, 0.0)
     return obj
 
 
@@ -219,17 +221,21 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     vertex_rgb = _vertex_rgb(mesh)
     obj.source = None
     if decimation_budget is None:
-        decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0, obj.solid_pitch)
+        # the visual mesh keeps what the map resolves at this object: half its own surfels' voxel
+        # (a scene's finest voxel belongs to its smallest, most finely mapped thing), no finer
+        # than the voxel solid it was closed as, and 0.5 % of its size
+        decimation_budget = max(default_budget(m), 0.5 * resolution if resolution else 0.0, 0.5 * obj.detail,
+                                obj.solid_pitch)
     if collision_tolerance is None:
         collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
-    t0 = time.perf_counter()
+    t0 = clock.now()
     dec = decimate_to_budget(m, decimation_budget, seed=seed)
     cap = obj.measured.face_budget = visual_face_budget(m, dec.budget, obj.measured.faces_before)
     if len(dec.mesh.faces) > cap:
         # the error budget asked for more faces than an object this size needs (a voxel solid's
         # staircase, a closing that refined the surface): the face budget wins, its error is kept
         dec = decimate_to_count(m, cap, dec, seed=seed)
-    obj.measured.timings["decimation_s"] = time.perf_counter() - t0
+    clock.add(obj.measured.timings, "decimation", t0)
     m = dec.mesh
     obj.measured.faces_after = int(len(m.faces))
     obj.measured.decimation_error, obj.measured.decimation_mean_error = dec.hausdorff, dec.mean_error
@@ -243,12 +249,12 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     except Exception as e:  # PsimapError: no volume
         obj.skip(Reason.PHYSICS, f"physics: {e}")
         return obj
-    t0 = time.perf_counter()
+    t0 = clock.now()
     obj.collision = collision_geometry(m, collision_tolerance, max_hulls=max_hulls, seed=seed,
                                        obstacles=obstacles, resting=obj.support_z is not None)
     if obj.support_z is not None and not obj.collision.is_primitive:
         obj.collision.parts = solid_parts(with_flat_base(obj.collision.parts, obj.support_z)) or obj.collision.parts
-    obj.measured.timings["collision_s"] = time.perf_counter() - t0
+    clock.add(obj.measured.timings, "collision", t0)
     if obj.collision.kind == "sphere":
         # a sphere collider means the object is a ball: its COM is the centre (a reconstruction's
         # sub-millimetre COM offset would otherwise roll a ball that rests in the scan)
@@ -258,9 +264,8 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
         if len(views) > MAX_BAKE_VIEWS:
             # views spread along the trajectory; more only average the same texels again
             views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, MAX_BAKE_VIEWS).round().astype(int))]
-    t0 = time.perf_counter()
-    _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
-    obj.measured.timings["texture_s"] = time.perf_counter() - t0
+    with clock.step(obj.measured.timings, "texture"):
+        _texture(obj, m, views, source_textured, vertex_rgb, mesh, texel)
     return obj
 
 
@@ -526,18 +531,17 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from psimap.exporters.solidify import disc_points
 
     timings = {} if timings is None else timings
-    t0 = time.perf_counter()
-    inst = instance_meshes(scene, progress=progress)
-    timings["instance_meshes_s"] = time.perf_counter() - t0
+    with clock.step(timings, "instance_meshes"):
+        inst = instance_meshes(scene, progress=progress)
     sf = {k: scene.surfels[k].detach().cpu().numpy() for k in ("means", "quats", "scales", "opacities")}
     iid = scene.instance_ids().cpu().numpy()
-    t0 = time.perf_counter()
+    t0 = clock.now()
     # the static world first: what the things stand on decides where their bottoms are
     env = static_environment(inst.background, voxel=inst.voxel_size, exclude_points=sf["means"][iid > 0], seed=seed)
     floor_z = env.floor_z if env.floor_observed else None
     tops = {item.instance_id: furniture_tops(item.mesh, voxel=inst.voxel_size) for item in inst.things
             if is_static_class(item.label, static_classes) and item.mesh is not None and len(item.mesh.faces)}
-    timings["environment_s"] = time.perf_counter() - t0
+    clock.add(timings, "environment", t0)
     objs, views_of, surfels_of = [], {}, {}
     for item in tqdm(inst.things, desc="object solids", disable=not progress, leave=False):
         if item.mesh is None or len(item.mesh.faces) == 0:
@@ -561,11 +565,12 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                                   surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size,
                                   open_under=max((t.height for t in tops.get(item.instance_id, [])), default=None)))
         objs[-1].surfel_count = int(np.count_nonzero(members))
+        objs[-1].detail = float(getattr(item.mesh, "voxel_size", 0.0) or 0.0)
         surfels_of[item.instance_id] = surfel_points
         if item.dropped_surfels:
             objs[-1].measured.repair_steps.insert(0, f"{item.dropped_surfels} surfels of this label away "
                                                      "from its main body left out")
-    t0 = time.perf_counter()
+    t0 = clock.now()
     for o in objs:
         if o.role is not Role.SKIPPED and tops.get(o.instance_id):
             o.mesh, steps = flatten_solid(o.mesh, tops[o.instance_id])
@@ -576,7 +581,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                 o.mesh, steps = clear_above_top(o.mesh, top, standing)
                 o.measured.repair_steps += steps
     make_consistent(objs, floor_z)
-    timings["consistency_s"] = time.perf_counter() - t0
+    clock.add(timings, "consistency", t0)
     for o in objs:
         if o.role is not Role.SKIPPED and o.instance_id in surfels_of:
             o.measured.coverage = observed_coverage(o.mesh, surfels_of[o.instance_id], tol=1.5 * inst.voxel_size)
@@ -585,10 +590,9 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     order = sorted((o for o in objs if o.role is not Role.SKIPPED),
                    key=lambda o: (-float(o.mesh.volume), o.instance_id))
     for o in tqdm(order, desc="object assets", disable=not progress, leave=False):
-        t0 = time.perf_counter()
-        cut_by_environment(o, env.colliders)
-        cut_by_colliders(o, finished)
-        timings["consistency_s"] += time.perf_counter() - t0
+        with clock.step(timings, "consistency"):
+            cut_by_environment(o, env.colliders)
+            cut_by_colliders(o, finished)
         hulls = {"max_hulls": STATIC_MAX_HULLS} if is_static_class(o.label, static_classes) else {}
         world = [c.mesh for c in env.colliders if c.mesh.bounds[1][2] > o.mesh.bounds[0][2] - 0.05
                  and np.all(c.mesh.bounds[0] < o.mesh.bounds[1] + 0.05) and np.all(c.mesh.bounds[1] > o.mesh.bounds[0] - 0.05)]
@@ -604,19 +608,18 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     room_sized = [t.mesh for t, o in zip(inst.things, objs) if o.reason is Reason.ROOM_SIZED and t.mesh is not None]
     if room_sized:
         background = trimesh.util.concatenate([m for m in [background, *room_sized] if m is not None])
-        t0 = time.perf_counter()
-        env = static_environment(background, voxel=inst.voxel_size, exclude_points=sf["means"][iid > 0], seed=seed)
-        timings["environment_s"] += time.perf_counter() - t0
+        with clock.step(timings, "environment"):
+            env = static_environment(background, voxel=inst.voxel_size, exclude_points=sf["means"][iid > 0],
+                                     seed=seed)
     for o in objs:
         if o.role is not Role.SKIPPED and tops.get(o.instance_id):
             add_support_slabs(env, tops[o.instance_id], o.name)
     bg = None
-    t0 = time.perf_counter()
-    if background is not None and len(background.faces):
-        bg = build_background(background, views=inst.views, seed=seed)
-        if bg.role is Role.SKIPPED:
-            bg = None
-    timings["background_s"] = time.perf_counter() - t0
+    with clock.step(timings, "background"):
+        if background is not None and len(background.faces):
+            bg = build_background(background, views=inst.views, seed=seed)
+            if bg.role is Role.SKIPPED:
+                bg = None
     return objs, bg, env
 
 

@@ -7,7 +7,8 @@ OUT/
   collision/<name>_<k>.obj          convex collision parts (world frame; primitives as meshes)
   report.json                       per object + the simulation check (deterministic)
   preview.png, report.html          the scene before / after the settle, a page per export (below)
-  timings.json                      wall-clock timings (the only file that differs between runs)
+  timings.json                      wall / user / system seconds per step (exporters.clock; the only
+                                    file that differs between runs)
 The folder is built in a temporary directory and renamed at the end: never half written.
 """
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from psimap import PsimapError
+from psimap.exporters import clock
 from psimap.exporters.roles import Reason, Role
 
 # A thing whose surface the views saw less than this share of (its bottom left out: the support
@@ -111,7 +113,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         from psimap.sim.newton_check import require_newton
 
         require_newton()
-    t0 = time.perf_counter()
+    t0 = clock.now()
     scene_steps: dict = {}
     if isinstance(scene_or_objects, (list, tuple)):
         all_objs = list(scene_or_objects)
@@ -128,7 +130,8 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         all_objs, background, environment = extract_scene(
             scene_or_objects, completion=completion, progress=progress, seed=seed, timings=scene_steps,
             static_classes=static_classes, **kw)
-    t_objects = time.perf_counter() - t0
+    objects_clock: dict = {}
+    clock.add(objects_clock, "objects", t0)
     # the environment passed in the list is no object (it is `background`)
     objs = [replace(o) for o in all_objs if o.role is not Role.SKIPPED and o.reason is not Reason.ENVIRONMENT]
     assign_roles(objs, static_classes, min_coverage)
@@ -136,7 +139,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     if len(set(names)) != len(names):
         raise PsimapError("export_scene: object names are not unique (duplicate instance ids)")
     scene = ExportScene(tuple(objs), background, floor_height(objs, environment), environment=environment)
-    timings = {"objects_s": t_objects, **scene_steps}
+    timings = {**objects_clock, **scene_steps}
     for o in all_objs:      # per asset step, summed over the objects
         for k, v in o.measured.timings.items():
             timings[k] = timings.get(k, 0.0) + v
@@ -149,7 +152,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         files = _write_meshes(scene, tmp)
         from psimap.exporters.report import object_entry, write_report
 
-        t = time.perf_counter()
+        t = clock.now()
         settled = {} if check else None
         if check:
             report["check"] = settle_check(scene, tmp / ".check", pin_unstable=pin_unstable, timings=timings,
@@ -164,14 +167,14 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
         if background is not None:
             report["background"] = object_entry(background, files.get(background.name, {}))
         for name in fmts:
-            fmt, t_fmt = FORMATS[name], time.perf_counter()
-            main_file = load(fmt.writer)(scene, tmp)
-            if fmt.validator:
-                found = report[f"{name}_validation"] = load(fmt.validator)(main_file)
-                if found["errors"]:
-                    raise PsimapError(f"{fmt.title} validation failed: {found['errors'][0]}")
-            timings[f"{name}_s"] = time.perf_counter() - t_fmt
-        timings["writers_s"] = time.perf_counter() - t
+            fmt = FORMATS[name]
+            with clock.step(timings, name):
+                main_file = load(fmt.writer)(scene, tmp)
+                if fmt.validator:
+                    found = report[f"{name}_validation"] = load(fmt.validator)(main_file)
+                    if found["errors"]:
+                        raise PsimapError(f"{fmt.title} validation failed: {found['errors'][0]}")
+        clock.add(timings, "writers", t)
         if with_newton:
             report["check_newton"] = newton_settle_check(scene, tmp, "usd" in fmts, timings)
         thumbs = {}
@@ -183,7 +186,7 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
             timings["preview_wait_s"] = time.perf_counter() - t_wait     # what the preview adds
             timings["preview_s"] = time.perf_counter() - t_preview       # the child's draw, overlapped
             shutil.rmtree(tmp / ".preview")
-        timings["total_s"] = time.perf_counter() - t0
+        clock.add(timings, "total", t0)
         write_report(tmp / "report.json", report)
         if preview:     # from report.json as written: the page shows its figures, never others
             from psimap.exporters.html_report import write_html
@@ -253,14 +256,15 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
     reason}: with pin_unstable, dynamic objects that moved or fell are made static (Reason.UNSTABLE,
     on scene's objects) and the scene is checked again, up to PIN_ROUNDS times. The nudges it
     reports are those of the last round, for the scene as its objects' roles now stand.
-    timings: receives check_s and sim_seconds_per_wall_second. settled: receives the last round's
-    poses after the settle (check_mjcf's `settled`); keep: leave work_dir/scene.xml, the MJCF of the
-    last round (nudged, roles as they now stand), for the caller to remove."""
+    timings: receives the check's clocks (check_s, ...) and sim_seconds_per_wall_second. settled:
+    receives the last round's poses after the settle (check_mjcf's `settled`); keep: leave
+    work_dir/scene.xml, the MJCF of the last round (nudged, roles as they now stand), for the
+    caller to remove."""
     from psimap.exporters.mjcf import write_mjcf
     from psimap.sim.check import check_mjcf
 
     timings = {} if timings is None else timings
-    t_check = time.perf_counter()
+    t_check = clock.now()
     res = check_mjcf(write_mjcf(scene, work_dir), settled=settled)
     pinned = {}
     for _ in range(PIN_ROUNDS if pin_unstable else 0):
@@ -275,7 +279,7 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
     res["pinned"] = pinned
     if not keep:
         shutil.rmtree(work_dir)
-    timings["check_s"] = time.perf_counter() - t_check
+    clock.add(timings, "check", t_check)
     timings["sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
     return res
 
@@ -289,13 +293,13 @@ def newton_settle_check(scene, out_dir: Path, usd_written: bool, timings: dict) 
     from psimap.exporters.usd import write_usd
     from psimap.sim.newton_check import check_usd_newton
 
-    t = time.perf_counter()
+    t = clock.now()
     work = out_dir / ".check_newton"
     try:
         res = check_usd_newton(out_dir / "scene.usda" if usd_written else write_usd(scene, work))
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    timings["newton_check_s"] = time.perf_counter() - t
+    clock.add(timings, "newton_check", t)
     timings["newton_load_s"] = res.pop("load_s")
     timings["newton_sim_seconds_per_wall_second"] = res.pop("sim_seconds_per_wall_second")
     return res

@@ -176,7 +176,8 @@ def test_a_killed_worker_is_replaced_and_the_task_runs_again(first_run, captures
     assert marker.exists(), "the plugin never killed the worker"
     e = s["captures"]["cap0"]
     assert e["status"] == "done" and e["check"]["passed"], e
-    assert e["trained_earlier"] and e["stage_seconds"]["train"] < 5
+    # the checkpoint of the first run was kept: no retraining (asserted by outcome, not by a time)
+    assert e["trained_earlier"]
     # the export ran again on the new worker process, not on the one that was killed
     assert e["tasks"]["export"]["worker"].split(":")[-1] != marker.read_text()
     # nothing half-written: no temporary export folder or file left by the killed write

@@ -260,3 +260,20 @@ def test_newton_settles_the_desk_like_mujoco(export_dir, capsys):
     # the same deepest contact at t = 0 (measured -0.43 mm in both)
     assert nw["min_contact_dist"] == pytest.approx(mj["min_contact_dist"], abs=3e-4)
     assert nw["static_bodies"] == mj["static_bodies"]
+
+
+def test_no_export_step_spends_more_system_than_user_time(export_dir):
+    """timings.json: wall, user and system seconds of every step (exporters.clock); system time
+    above user time is threads spinning or memory churn, not the step's work (issue #20)."""
+    from psimap.exporters import clock
+
+    t = json.loads((export_dir / "timings.json").read_text())
+    names = clock.steps(t)
+    assert {"objects", "instance_meshes", "environment", "repair", "decimation", "collision", "texture",
+            "check", "mjcf", "usd", "glb", "writers", "total"} <= set(names)
+    assert t["total_s"] >= t["objects_s"] >= t["instance_meshes_s"] > 0
+    assert t["total_user_s"] + t["total_sys_s"] >= t["objects_user_s"] > 0
+    for n in names:
+        user, system = t[n + "_user_s"], t[n + "_sys_s"]
+        if user + system >= 0.5:        # below it, rusage's clock ticks are noise
+            assert system <= user, (n, user, system)

@@ -136,12 +136,14 @@ def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequ
               voxel_size: float | None = None, trunc: float | None = None,
               depth_max: float | None = None, keep_fraction: float = 0.05,
               min_component_voxels: float = 0.0, weight_threshold: float = 1.0,
-              progress: bool = False):
+              progress: bool = False, block_count: int = 20000):
     """Fuse depth maps into a mesh; returns trimesh.Trimesh (metres, world frame, vertex colours).
 
     depths: list of [H,W] float32 metres (0 / non-finite = invalid); Ks: list of [3,3];
     c2ws: list of [4,4] camera-to-world OpenCV; colors: optional list of [H,W,3] float in [0,1]
     (or uint8); masks: optional list of [H,W] bool — only True pixels are fused.
+    block_count: initial capacity of the voxel-block hash map (it grows as needed); every block
+    (8^3 voxels, ~10 KB with colour) is allocated and zeroed up front, used or not.
     Parameters left None follow from the data (`derive_params`). Components smaller than
     `keep_fraction` of the largest, or with less area than `min_component_voxels` voxel faces, are
     removed. An empty mesh is returned when nothing was fused.
@@ -185,7 +187,7 @@ def fuse_tsdf(depths: Sequence[np.ndarray], Ks: Sequence[np.ndarray], c2ws: Sequ
     # Blocks of 8^3 voxels; the hash map grows as needed, the count is only the initial capacity.
     vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=names, attr_dtypes=dtypes, attr_channels=channels,
                                         voxel_size=params.voxel_size, block_resolution=8,
-                                        block_count=20000, device=dev)
+                                        block_count=int(block_count), device=dev)
     mult = params.trunc / params.voxel_size
     for i in tqdm(range(n), desc="tsdf", disable=not progress, leave=False):
         d = clean[i]
