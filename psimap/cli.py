@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
+import re
 import sys
 
 from psimap import options as O
@@ -88,9 +89,23 @@ def run_eval(opts) -> int:
     return cli_eval(opts, objects=objects)
 
 
+def _join_up_values(argv: list[str]) -> list[str]:
+    """`--up -y` as `--up=-y`: argparse takes a value starting with '-' for an option and stops with
+    "expected one argument"; an axis ("-y") or a vector ("-0.1,0.9,0") is what --up means there."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] == "--up" and i + 1 < len(argv) and re.fullmatch(r"-(?:[xyz]|[0-9.][0-9.,eE+-]*)", argv[i + 1]):
+            out.append(f"--up={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
+
+
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_up_values(list(sys.argv[1:] if argv is None else argv)))
     if args.command is None:
         parser.print_help()
         return 2

@@ -304,3 +304,15 @@ def test_check_reads_the_demo_export(ran):
     assert rep["mujoco"]["static_bodies"] == exported["check"]["static_bodies"]
     # --check-engine mujoco (the default): no Newton report
     assert "check_newton" not in json.loads((tmp / "e_all" / "report.json").read_text())
+
+
+@pytest.mark.parametrize("value", ["-y", "-x", "-0.1,0.9,0"])
+def test_up_takes_a_value_that_starts_with_a_dash(value, tmp_path, capsys):
+    # argparse reads "-y" as an option ("expected one argument"); the CLI joins it to --up, so the
+    # run gets as far as the missing checkpoint and fails there, with one line
+    from psimap.cli import main
+
+    rc = main(["export", str(tmp_path / "missing.ckpt"), "--up", value, "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "expected one argument" not in err and "missing.ckpt" in err, err
+    assert not (tmp_path / "o").exists()
