@@ -68,6 +68,9 @@ def test_far_walls_get_coarse_surfels_and_things_keep_theirs(far_wall):
     s_new = np.exp(new["log_scales"].detach().numpy()).max(1)[far(m_new)]
     assert np.median(s_new) > 2.0 * np.median(s_old), (np.median(s_old), np.median(s_new))
     assert info_new["planar_area"] > 0 and any("large planar stuff" in m for m in logs)
+    # the large planar stuff (walls, floor) is spaced coarser: without that factor more surfels
+    _, info_flat, _, _ = _init(far_wall, stuff_spacing_factor=1.0)
+    assert info_flat["n_init"] > info_new["n_init"], (info_flat["n_init"], info_new["n_init"])
 
 
 def test_the_surfel_cap_holds_and_is_logged(far_wall):
@@ -135,6 +138,7 @@ def test_geometry_steps_stop_at_a_plateau_on_an_easy_scene_only(far_wall):
     m = easy.metrics
     assert m["geometry_stop"] == "plateau" and m["geometry_steps"] < 250, m["plateau_checks"]
     assert m["steps"] == m["geometry_steps"] and m["plateau_gain"] < 0.03
+    assert m["history"][-1]["step"] == m["geometry_steps"]      # it stopped there
     # the density schedule ran before the stop: at least one round, and it settled
     assert m["densify"] and m["density_settled"] <= m["geometry_steps"] - 2 * 25
     full = train(sequence(frames), cfg(**{**run, "plateau_window": 0}), log=lambda m: None)
