@@ -97,6 +97,24 @@ def near_things(mesh, data: Path, threshold: float = 0.01) -> dict:
             "completeness_cm": m["completeness"] * 100}
 
 
+def prior_counts(data: Path) -> dict:
+    """{rule: (initial surfels, what the spacing asked for, seconds)} of the prior alone (no training)."""
+    from psimap.data import load
+    from psimap.train.config import TrainConfig
+    from psimap.train.trainer import init_from_prior, prepare_frames, target_spacing
+
+    seq = load(data)
+    out = {}
+    for v in ("before", "after"):
+        cfg = TrainConfig(**(BEFORE if v == "before" else {}))
+        t = time.perf_counter()
+        fr, _, _, _ = prepare_frames(seq, cfg, log=lambda m: None)
+        spacing = target_spacing(fr, cfg.spacing_pixels)
+        _, _, info = init_from_prior(fr, cfg, spacing, list(seq.classes), log=lambda m: print("   ", m, flush=True))
+        out[v] = (info["n_init"], info["n_needed"], time.perf_counter() - t)
+    return out
+
+
 def run_one(label: str, data: Path, variant: str) -> dict:
     """Train (default settings, or BEFORE's) on `data`, evaluate; the run record (kept as JSON)."""
     from psimap.metrics.evaluate import evaluate
@@ -188,11 +206,35 @@ def plot(runs: dict):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["demo", "far"], choices=["demo", "far"])
-    ap.add_argument("--far-size", default="20x160x120", help="FRAMESxWxH of the far-wall capture")
+    ap.add_argument("--far-size", default="10x96x72",
+                    help="FRAMESxWxH of the far-wall capture (the rule before trains ~(W / 320)^2 x 520k "
+                         "surfels on it: keep it small)")
     ap.add_argument("--no-append", action="store_true")
+    ap.add_argument("--reuse", action="store_true", help="take runs kept in bench_out/budget instead of training")
+    ap.add_argument("--prior-only", default="", metavar="FxWxH",
+                    help="only the prior's surfel counts (no training) of far-wall captures of these "
+                         "sizes (comma list), before / after: section surfels/budget-prior")
     args = ap.parse_args(argv)
     OUT.mkdir(parents=True, exist_ok=True)
-    runs = {}
+    if args.prior_only:
+        rows = []
+        for size in args.prior_only.split(","):
+            f, w, h = (int(v) for v in size.split("x"))
+            data = far_wall_capture(OUT / f"far_{size}", 0, frames=f, width=w, height=h)
+            c = prior_counts(data)
+            rows.append([f"far-wall ({f} frames {w}x{h})", c["before"][0], c["after"][0],
+                         f"{c['after'][0] / c['before'][0]:.3f}", f"{c['before'][2]:.1f} / {c['after'][2]:.1f}"])
+        body = markdown_table(["capture", "initial surfels before", "after", "after / before",
+                               "prior seconds before / after"], rows) + (
+            "\n\nThe prior alone (SOGMM fit and initial surfels, no training; training width 320 px). The "
+            "budget is budget_factor (1.5) x the initial surfels.")
+        print(body)
+        if not args.no_append:
+            write_section("surfels/budget-prior", "Surfels by viewing distance: the prior on a far-wall capture",
+                          body, headlines=[(f"{r[0]}: initial surfels before -> after", f"{r[1]} -> {r[2]}")
+                                           for r in rows])
+        return
+    runs, reused = {}, []
     t0 = time.perf_counter()
     load0 = os.getloadavg()
     for s in args.scenes:
@@ -203,6 +245,11 @@ def main(argv=None):
             label, data = f"far-wall ({f} frames {w}x{h})", far_wall_capture(OUT / f"far_{args.far_size}", 0,
                                                                            frames=f, width=w, height=h)
         for v in ("before", "after"):          # interleaved: the same load for both rules
+            kept = OUT / f"{label}_{v}.json"
+            if args.reuse and kept.exists():
+                runs[(label, v)] = json.loads(kept.read_text())
+                reused.append(kept.name)
+                continue
             print(f"[{label} {v}]", flush=True)
             runs[(label, v)] = run_one(label, data, v)
     t, heads = table(runs)
@@ -211,6 +258,8 @@ def main(argv=None):
             f"{' / '.join(f'{v:.1f}' for v in load0)} at the start on 2 shared cores (wall ratios are noisy). "
             "Surfels on things: within 5 cm of a GT thing surface (benchmarks/surfels.py). Things F1 / Chamfer: the "
             "scene mesh within 3 cm of GT thing surfaces against the seen GT thing surfaces, F1 at 1 cm.")
+    if reused:
+        note += " Runs reused from an earlier invocation (bench_out/budget): " + ", ".join(reused) + "."
     body = t + "\n\n" + note
     print(body)
     if not args.no_append:

@@ -61,6 +61,10 @@ def test_far_walls_get_coarse_surfels_and_things_keep_theirs(far_wall):
     assert info_new["n_init"] < 0.3 * info_old["n_init"], (info_old["n_init"], info_new["n_init"])
     t_old, t_new = _on_things(m_old, far_wall).sum(), _on_things(m_new, far_wall).sum()
     assert t_new >= t_old, (t_old, t_new)                   # things keep (at least) their surfels
+    # things take thing_spacing_pixels (2.5 px), not the scene's 3 px: (3 / 2.5)^2 = 1.44x the surfels
+    coarse, _, _, _ = _init(far_wall, thing_spacing_pixels=3.0)
+    t_coarse = _on_things(coarse["means"].detach().numpy(), far_wall).sum()
+    assert t_new > 1.25 * t_coarse, (t_coarse, t_new)
     # a surfel's size follows its distance: 2.5 m from every camera it is > 2x the old rule's
     cams = np.stack([f.c2w[:3, 3] for f in fr])
     far = lambda m: np.linalg.norm(m[:, None] - cams[None], axis=2).min(1) > 2.5  # noqa: E731
