@@ -35,6 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench_out" / "budget"
 # The rule before issue #20's geometry work, as TrainConfig settings.
 BEFORE = {"distance_spacing": False, "max_surfels": 0, "plateau_window": 0}
+# ... and after: spacing by viewing distance (opt-in), the cap and the plateau rule (defaults).
+AFTER = {"distance_spacing": True}
 # Far-wall capture: camera 0.5-0.8 m from the table centre at 1.0-1.2 m, walls 2.5-4 m from it.
 FAR_WALL = {"CAMERA_DISTANCE": (0.5, 0.8), "CAMERA_HEIGHT": (1.0, 1.2), "WALL_DISTANCE": (2.5, 4.0)}
 
@@ -106,7 +108,7 @@ def prior_counts(data: Path) -> dict:
     seq = load(data)
     out = {}
     for v in ("before", "after"):
-        cfg = TrainConfig(**(BEFORE if v == "before" else {}))
+        cfg = TrainConfig(**(BEFORE if v == "before" else AFTER))
         t = time.perf_counter()
         fr, _, _, _ = prepare_frames(seq, cfg, log=lambda m: None)
         spacing = target_spacing(fr, cfg.spacing_pixels)
@@ -122,7 +124,7 @@ def run_one(label: str, data: Path, variant: str) -> dict:
     from psimap.train.trainer import train
     from surfels import gt_surface_labels, surfels_per_instance
 
-    cfg = TrainConfig(**(BEFORE if variant == "before" else {}))
+    cfg = TrainConfig(**(BEFORE if variant == "before" else AFTER))
     prior = {}
 
     def snapshot(step, params, elapsed):

@@ -31,7 +31,7 @@ def far_wall(tmp_path_factory):
 
 def _init(data, **kw):
     seq = load(data)
-    cfg = TrainConfig(**kw)
+    cfg = TrainConfig(**{**B.AFTER, **kw})
     fr, _, _, _ = prepare_frames(seq, cfg, log=lambda m: None)
     spacing = target_spacing(fr, cfg.spacing_pixels)
     logs = []
