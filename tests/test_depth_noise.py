@@ -73,10 +73,10 @@ def test_prior_points_carry_the_noise_of_their_range():
         d[0, :5] = 0.0
         frames.append(TrainFrame(name="f", rgb=torch.zeros(*d.shape, 3), depth=torch.from_numpy(d), K=K,
                                  c2w=np.eye(4), viewmat=torch.eye(4)))
-    pts, noise, stride = prior_points(frames, TrainConfig(), log=lambda s: None)
+    pts, noise, stride, _ = prior_points(frames, TrainConfig(), log=lambda s: None)
     assert noise is not None and noise.shape == (len(pts),) and np.isfinite(noise).all()
     # the point's camera-frame z is its depth (identity pose): noise follows sigma(z)
     inner = (pts[:, 2] > 1.2) & (pts[:, 2] < 3.0)
     assert np.allclose(noise[inner], sigma(pts[inner, 2]), rtol=0.2)
-    pts2, none, _ = prior_points(frames, TrainConfig(prior_noise=False), log=lambda s: None)
+    pts2, none, _, _ = prior_points(frames, TrainConfig(prior_noise=False), log=lambda s: None)
     assert none is None and np.array_equal(pts, pts2)

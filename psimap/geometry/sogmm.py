@@ -50,7 +50,8 @@ class SOGMM:
     counts [K] points per component; fit_stats: K, residual_mean (mean point-to-plane distance of
     the fitted points, m), time_s, n_points (after downsampling), and the settings used.
     detail [K] share of each component's points marked as detail (None when the fit had no marks;
-    not saved by as_arrays).
+    not saved by as_arrays). footprint [K] mean of its points' `footprint` values (metres per pixel
+    at each point's viewing distance; None when the fit was given none; not saved by as_arrays).
     """
 
     means: np.ndarray
@@ -62,6 +63,7 @@ class SOGMM:
     counts: np.ndarray
     fit_stats: dict = field(default_factory=dict)
     detail: np.ndarray | None = None
+    footprint: np.ndarray | None = None
 
     @property
     def K(self) -> int:
@@ -254,8 +256,8 @@ def _seed_labels(xyz: np.ndarray, cell_size: float, min_points: int) -> np.ndarr
 def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel: float | None = None,
               max_extent: float | None = None, planarity: float = 0.02, residual: float | None = None,
               min_points: int = 8, em_iters: int = 3, noise: np.ndarray | None = None,
-              detail: np.ndarray | None = None, detail_extent: float | None = None, seed: int = 0,
-              progress: bool | None = None) -> SOGMM:
+              detail: np.ndarray | None = None, detail_extent: float | None = None,
+              footprint: np.ndarray | None = None, seed: int = 0, progress: bool | None = None) -> SOGMM:
     """Fit the SOGMM prior to a point cloud.
 
     points: [N, 3] or [N, 4] (x, y, z world metres[, grey in [0, 1]]); intensity: [N] grey, overrides
@@ -282,7 +284,11 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
       things), or None. A component whose points are mostly detail also splits while its side
       exceeds `detail_extent` (m; required with `detail`), whatever its noise: a small object seen
       through noise is otherwise one or two flat patches. None gives exactly the fit without it.
-    Returns SOGMM (with .detail [K] when `detail` was given). Raises PsimapError on empty / malformed input.
+    footprint: [N] metres per pixel at each point's own viewing distance (its depth / the focal
+      length of the view it came from), or None. It does not steer the fit: each component reports
+      the mean over its points (.footprint [K]), what the views resolve there, from which training
+      sets the surfel spacing per component. None gives exactly the fit without it.
+    Returns SOGMM (with .detail [K] when `detail` was given, .footprint [K] with `footprint`). Raises PsimapError on empty / malformed input.
     """
     del seed  # the fit is deterministic by construction (no sampling)
     t_start = time.perf_counter()
@@ -306,6 +312,12 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
             raise PsimapError(f"noise has {len(noise)} values for {len(pts)} points")
         # carried as a variance column through the NaN filter and the voxel averaging
         pts = np.concatenate([pts, np.nan_to_num(noise, nan=0.0, posinf=0.0)[:, None] ** 2], axis=1)
+    if footprint is not None:
+        footprint = np.asarray(footprint, dtype=np.float64).reshape(-1)
+        if len(footprint) != n_input:
+            raise PsimapError(f"footprint has {len(footprint)} values for {n_input} points")
+        # carried as a column (before detail's) through the NaN filter and the voxel averaging
+        pts = np.concatenate([pts, np.nan_to_num(footprint, nan=0.0, posinf=0.0)[:, None]], axis=1)
     if detail is not None:
         detail = np.asarray(detail, dtype=np.float64).reshape(-1)
         if len(detail) != n_input:
@@ -338,6 +350,10 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
     point_detail = None
     if detail is not None:
         point_detail = pts[:, -1]
+        pts = pts[:, :-1]
+    point_footprint = None
+    if footprint is not None:
+        point_footprint = pts[:, -1]
         pts = pts[:, :-1]
     point_var = None
     if noise is not None:
@@ -457,9 +473,11 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
         covs = _regularise(covs, eps_xyz)
 
     eigvals, normals, tangents = _frames(covs[:, :3, :3])
-    comp_detail = None
+    comp_detail = comp_footprint = None
     if point_detail is not None:
         comp_detail = np.bincount(labels, point_detail, minlength=K) / np.maximum(counts, 1)
+    if point_footprint is not None:
+        comp_footprint = np.bincount(labels, point_footprint, minlength=K) / np.maximum(counts, 1)
     d = np.abs(np.einsum("ij,ij->i", X[:, :3] - means[labels, :3], normals[labels]))
     means[:, :3] += centre
     stats = {
@@ -480,7 +498,8 @@ def fit_sogmm(points: np.ndarray, *, intensity: np.ndarray | None = None, voxel:
         stats["detail_extent"] = float(detail_extent)
         stats["K_detail"] = int((comp_detail > 0.5).sum())
     return SOGMM(means=means, covs=covs, weights=counts / N, normals=normals, tangents=tangents,
-                 eigvals=eigvals, counts=counts.astype(np.int64), fit_stats=stats, detail=comp_detail)
+                 eigvals=eigvals, counts=counts.astype(np.int64), fit_stats=stats, detail=comp_detail,
+                 footprint=comp_footprint)
 
 
 # ----------------------------------------------------------------------------------------------

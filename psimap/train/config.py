@@ -94,6 +94,25 @@ class TrainConfig:
     budget_factor: float = _f(1.5, "surfel budget = this x the count that covers the prior's area at "
                                    "the target spacing (2.0 cost 1/3 more time for Chamfer 1.62 vs "
                                    "1.66 cm on the demo scene)")
+    distance_spacing: bool = _f(False, "surfel spacing per prior component from its own points' viewing "
+                                      "distance (spacing_pixels footprints there; a far wall coarser than a "
+                                      "near table), large planar stuff stuff_spacing_factor coarser; False: "
+                                      "one spacing at the median depth for all. Off by default until its "
+                                      "cost is understood: demo PQ 0.869 -> 0.818 and the test demos' PQ "
+                                      "below their floors (benchmarks/RESULTS.md surfels/budget)")
+    stuff_spacing_factor: float = _f(2.0, "large planar stuff (components off things whose shorter side spans "
+                                          "trainer.LARGE_PLANE_SPACINGS spacings: walls, floor, ceiling) is "
+                                          "spaced this many times coarser (1 = no change)")
+    max_surfels: int = _f(200_000, "cap on the surfel budget on any capture (initial surfels: this / "
+                                   "budget_factor; the spacing is raised to fit, and logged). Training costs "
+                                   "about 1.5 us of CPU per surfel and step and ~3.5 kB per surfel: 200k "
+                                   "surfels is ~2.5 min and ~0.7 GB for 450 steps; 0 = no cap")
+    plateau_window: int = _f(50, "end the geometry steps when the frames' loss improved less than "
+                                 "plateau_tol over the last this-many steps (checked every window once "
+                                 "density control has settled); iters stays the cap; 0 = always run iters")
+    plateau_tol: float = _f(0.03, "relative gain of the frames' loss over one plateau_window below which the "
+                                  "geometry steps end (the decaying step size keeps the loss falling ~2 percent per "
+                                  "25 steps on a fitted toy scene, with no gain in F1)")
     spacing_pixels: float = _f(3.0, "target surfel spacing in pixels at the median viewing distance "
                                     "(finer detail cannot be seen by the training views)")
 

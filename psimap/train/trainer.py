@@ -44,6 +44,11 @@ EXTENT_PERCENTILE = 1
 # A thing's SOGMM patches are at most this many thing spacings wide (so each holds ~this^2 surfels
 # and the patch planes follow the object's curvature at the scale its surfels resolve).
 THING_PATCH_SPACINGS = 4
+# A stuff component whose shorter side spans this many of its own surfel spacings is large planar
+# stuff (walls, floor, ceiling), spaced TrainConfig.stuff_spacing_factor coarser.
+LARGE_PLANE_SPACINGS = 6
+# Smallest footprint (m per pixel) a component is given: guards a degenerate zero-depth average.
+MIN_FOOTPRINT = 1e-5
 # Things take at most this share of the initial surfels, however much of the view they fill: the
 # rest of the scene keeps enough to be covered.
 THING_SHARE_MAX = 0.5
@@ -53,8 +58,55 @@ EVAL_FRAMES = 6
 MEANS_LR_END = 0.01
 # loss_end is the mean over the last 1/LOSS_END_PART of the steps (one step's loss is one frame's).
 LOSS_END_PART = 10
+# The plateau rule watches the frames' fit: the data terms, whose weights the schedule never changes
+# (L_geo's decays, the regularisers switch on, the LiDAR term comes every other step).
+DATA_TERMS = ("rgb", "depth", "depth_median")
+# A density-control round that changes at most this share of the surfels settles the set (with
+# the plateau rule on): no later round, and the plateau rule may start counting.
+DENSITY_SETTLED = 0.02
+# The plateau rule pairs a window's steps with the window before by frame when at least this many
+# frames appear in both (else it compares the two windows' plain means).
+PLATEAU_MIN_PAIRED = 3
 # Weight of the newest step in the smoothed loss shown on the progress bar and in `history`.
 LOSS_EMA = 0.1
+
+
+@dataclass
+class Plateau:
+    """When to end the geometry steps: every `window` steps, the frames' loss (DATA_TERMS) of the
+    last window is compared with the window before, frame by frame (a step's loss is one random
+    frame's, and frames differ far more from each other than one frame does between windows); the
+    steps end when the relative gain is below `tol`. window 0: never (the cap, cfg.iters, ends them).
+    """
+
+    window: int
+    tol: float
+    frames: list = field(default_factory=list)
+    losses: list = field(default_factory=list)
+    gain: float = float("nan")
+    checks: list = field(default_factory=list)        # [step, gain] of every comparison made
+
+    def add(self, frame: int, loss: float) -> None:
+        self.frames.append(int(frame))
+        self.losses.append(float(loss))
+
+    def stalled(self, steps_settled: int) -> bool:
+        """True when, `steps_settled` steps after the schedule settled (a multiple of the window, two
+        windows at least), the last window improved on the one before by less than tol."""
+        w = self.window
+        if w <= 0 or steps_settled < 2 * w or steps_settled % w or len(self.losses) < 2 * w:
+            return False
+        fa, la = np.array(self.frames[-2 * w:-w]), np.array(self.losses[-2 * w:-w])
+        fb, lb = np.array(self.frames[-w:]), np.array(self.losses[-w:])
+        common = np.intersect1d(fa, fb)
+        if len(common) >= PLATEAU_MIN_PAIRED:
+            before = sum(float(la[fa == f].mean()) for f in common)
+            after = sum(float(lb[fb == f].mean()) for f in common)
+        else:
+            before, after = float(la.mean()), float(lb.mean())
+        self.gain = (before - after) / max(before, 1e-12)
+        self.checks.append([len(self.losses), self.gain])
+        return self.gain < self.tol
 
 
 @dataclass
@@ -211,23 +263,36 @@ def point_stride(frames) -> int:
 
 def prior_points(frames, cfg: TrainConfig, log=print, sweeps=()):
     """4D points (x, y, z, grey) [P, 4] of every stride-th valid pixel for the SOGMM fit, then the
-    LiDAR returns (psimap.train.lidar.prior_returns), and the noise std [P] of each (depth pixels:
+    LiDAR returns (psimap.train.lidar.prior_returns); the noise std [P] of each (depth pixels:
     sigma(z) estimated from the frames' own depth, psimap.geometry.depth_noise; returns: the
-    sweeps' own range noise), or None when cfg.prior_noise is off or no noise is measurable."""
+    sweeps' own range noise), or None when cfg.prior_noise is off or no noise is measurable; the
+    pixel step; and each point's footprint [P], metres per pixel at its own viewing distance (a
+    pixel's depth / its frame's focal length; a return's distance to the nearest training camera /
+    the median focal length). Returns (pts4, noise, stride, footprint)."""
     from psimap.geometry.points import backproject_frame
 
     stride = point_stride(frames)
     per_frame = [backproject_frame(fr.rgb.numpy(), fr.depth.numpy(), fr.K.numpy(), fr.c2w, stride=stride)
                  for fr in frames]
     pts4 = np.concatenate(per_frame)
+    # each point's camera depth: its offset from the camera centre along the optical axis
+    z = np.concatenate([(p[:, :3] - np.asarray(fr.c2w, np.float64)[:3, 3]) @ np.asarray(fr.c2w, np.float64)[:3, 2]
+                        for p, fr in zip(per_frame, frames)])
+    focals = np.array([0.5 * float(fr.K[0, 0] + fr.K[1, 1]) for fr in frames])
+    footprint = z / np.repeat(focals, [len(p) for p in per_frame])
     lidar4 = np.zeros((0, 4), np.float32)
     if sweeps:
+        from scipy.spatial import cKDTree
+
         from psimap.train.lidar import prior_returns
 
         lidar4 = prior_returns(sweeps, frames, PRIOR_POINTS)
+        centres = np.stack([np.asarray(fr.c2w, np.float64)[:3, 3] for fr in frames])
+        dist, _ = cKDTree(centres).query(lidar4[:, :3].astype(np.float64), k=1)
+        footprint = np.concatenate([footprint, dist / float(np.median(focals))])
     all4 = np.concatenate([pts4, lidar4])
     if not cfg.prior_noise:
-        return all4, None, stride
+        return all4, None, stride, footprint
     from psimap.geometry.depth_noise import estimate_depth_noise, noise_at
 
     model = estimate_depth_noise([fr.depth.numpy() for fr in frames])
@@ -236,9 +301,6 @@ def prior_points(frames, cfg: TrainConfig, log=print, sweeps=()):
         zc, sc = model
         log(f"depth noise from the images: sigma {sc[0] * 1000:.1f} mm at {zc[0]:.1f} m .. "
             f"{sc[-1] * 1000:.1f} mm at {zc[-1]:.1f} m")
-        # each point's camera depth: its offset from the camera centre along the optical axis
-        z = np.concatenate([(p[:, :3] - np.asarray(fr.c2w, np.float64)[:3, 3]) @ np.asarray(fr.c2w, np.float64)[:3, 2]
-                            for p, fr in zip(per_frame, frames)])
         noise = noise_at(z, model)
     if len(lidar4):
         from psimap.train.lidar import range_noise
@@ -246,7 +308,7 @@ def prior_points(frames, cfg: TrainConfig, log=print, sweeps=()):
         # pixels without a noise model count as noiseless (the fit's behaviour without noise)
         noise = np.concatenate([np.zeros(len(pts4)) if noise is None else noise,
                                 np.full(len(lidar4), range_noise(sweeps))])
-    return all4, noise, stride
+    return all4, noise, stride, footprint
 
 
 def thing_points(frames, classes, stride: int) -> np.ndarray | None:
@@ -280,14 +342,17 @@ def _pad_to(mask: np.ndarray | None, n: int) -> np.ndarray | None:
 def fit_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=print, sweeps=()):
     """The SOGMM prior of the frames' back-projected points (prior_points). With cfg.thing_detail and
     masked frames, points in thing masks are fitted finer (patches at most THING_PATCH_SPACINGS thing
-    spacings wide; sogmm.detail says which components are on things). Returns (sogmm, pts4, stride)."""
+    spacings wide; sogmm.detail says which components are on things). With cfg.distance_spacing
+    each component also knows its points' mean footprint (sogmm.footprint, metres per pixel).
+    Returns (sogmm, pts4, stride)."""
     from psimap.geometry.sogmm import fit_sogmm
 
-    pts4, noise, stride = prior_points(frames, cfg, log, sweeps)
+    pts4, noise, stride, footprint = prior_points(frames, cfg, log, sweeps)
+    kw = {"noise": noise, "footprint": footprint if cfg.distance_spacing else None}
     thing = _pad_to(thing_points(frames, classes, stride), len(pts4)) if cfg.thing_detail else None
     if thing is None or not thing.any():
-        return fit_sogmm(pts4, noise=noise), pts4, stride
-    return (fit_sogmm(pts4, noise=noise, detail=thing, detail_extent=THING_PATCH_SPACINGS * thing_spacing(spacing, cfg)),
+        return fit_sogmm(pts4, **kw), pts4, stride
+    return (fit_sogmm(pts4, detail=thing, detail_extent=THING_PATCH_SPACINGS * thing_spacing(spacing, cfg), **kw),
             pts4, stride)
 
 
@@ -312,6 +377,37 @@ def relative_density(sogmm, spacing: float, cfg: TrainConfig, n_total: int) -> n
     n_thing = min(a_thing / thing_spacing(spacing, cfg) ** 2, THING_SHARE_MAX * n_total)
     ratio = (n_thing / a_thing) / ((n_total - n_thing) / a_stuff)
     return np.where(on, max(ratio, 1.0), 1.0)
+
+
+def component_spacing(sogmm, spacing: float, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Target surfel spacing of each prior component (m) [K] from what the views resolve there, and
+    which components are large planar stuff [K] bool.
+
+    A component's spacing is cfg.spacing_pixels pixel footprints at its own points' viewing distance
+    (sogmm.footprint): a far wall gets coarser surfels than a near table. Thing components (the
+    masks' detail) keep the thing spacing of the rule before (thing_spacing: thing_spacing_pixels
+    at the median depth); finer near things (thing_spacing_pixels footprints) measured no better
+    geometry and a lower thing PQ on the demo scene (0.66 vs 0.82). A component that is not on a thing and whose
+    shorter side spans LARGE_PLANE_SPACINGS of its spacings is large planar stuff (a wall, the floor,
+    a ceiling: the fit left it that large because it is flat within the noise), spaced
+    cfg.stuff_spacing_factor times coarser: a 2D surfel represents a plane at any size.
+    """
+    fp = sogmm.footprint
+    if fp is None:
+        fp = np.full(sogmm.K, spacing / cfg.spacing_pixels)
+    fp = np.maximum(np.asarray(fp, np.float64), MIN_FOOTPRINT)
+    s = cfg.spacing_pixels * fp
+    thing = np.zeros(sogmm.K, bool) if sogmm.detail is None else sogmm.detail > 0.5
+    s[thing] = thing_spacing(spacing, cfg)
+    planar = ~thing & (sogmm.extents().min(1) >= LARGE_PLANE_SPACINGS * s)
+    s[planar] *= cfg.stuff_spacing_factor
+    return s, planar
+
+
+def max_initial_surfels(cfg: TrainConfig) -> int:
+    """The most initial surfels any capture gets: the budget (budget_factor x this) stays within
+    cfg.max_surfels (0 = no cap)."""
+    return int(cfg.max_surfels / max(cfg.budget_factor, 1.0)) if cfg.max_surfels > 0 else 0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -364,24 +460,48 @@ def init_from_prior(frames, cfg: TrainConfig, spacing: float, classes=None, log=
     t0 = time.perf_counter()
     sogmm, pts4, stride = fit_prior(frames, cfg, spacing, classes, log, sweeps)
     side = sogmm.extents()
-    area = float((side[:, 0] * side[:, 1]).sum())
-    n_init = max(MIN_SURFELS, int(round(area / spacing**2)))
-    rel = relative_density(sogmm, spacing, cfg, n_init)
+    areas = side[:, 0] * side[:, 1]
+    area = float(areas.sum())
+    cap = max_initial_surfels(cfg)
+    info = {"sogmm_K": sogmm.K, "area": area}
+    if cfg.distance_spacing:
+        s_k, planar = component_spacing(sogmm, spacing, cfg)
+        n_need = float((areas / s_k**2).sum())
+        rel = 1.0 / s_k**2
+        spacing_note = (f"spacing {s_k.min() * 100:.1f}..{s_k.max() * 100:.1f} cm by viewing distance "
+                        f"(median-depth rule: {spacing * 100:.1f} cm), {float(areas[planar].sum()):.1f} m^2 "
+                        f"large planar stuff at {cfg.stuff_spacing_factor:g}x")
+        info.update(spacing_min=float(s_k.min()), spacing_max=float(s_k.max()),
+                    planar_area=float(areas[planar].sum()))
+    else:
+        n_need = area / spacing**2
+        rel = None
+        spacing_note = f"spacing {spacing * 100:.1f} cm"
+    scale = math.sqrt(n_need / cap) if cap and n_need > cap else 1.0
+    n_init = max(MIN_SURFELS, int(round(n_need / scale**2)))
+    if not cfg.distance_spacing:
+        rel = relative_density(sogmm, spacing, cfg, n_init)
     means, quats, scales, _ = sample_surfels(sogmm, n_init, relative_density=rel, seed=cfg.seed)
-    if rel is not None:
+    if sogmm.detail is not None and rel is not None:
         on = sogmm.detail > 0.5
-        log(f"things: {int(on.sum())} of {sogmm.K} components, {float((side[on, 0] * side[on, 1]).sum()):.1f} m^2, "
-            f"{rel.max():.1f}x the surfels per m^2 of the rest")
+        dens = rel * n_init / float((areas * rel).sum())
+        log(f"things: {int(on.sum())} of {sogmm.K} components, {float(areas[on].sum()):.1f} m^2, "
+            f"{np.median(dens[on]) / max(np.median(dens[~on]) if (~on).any() else 1.0, 1e-12):.1f}x the "
+            f"surfels per m^2 of the rest (medians)")
+    if scale > 1.0:
+        log(f"surfel cap: the spacing asked for {int(round(n_need))} surfels; spacing raised {scale:.2f}x to "
+            f"{n_init} (max_surfels {cfg.max_surfels} / budget_factor {cfg.budget_factor:g})")
     log(f"SOGMM prior: K = {sogmm.K} components from {len(pts4)} points, residual "
         f"{sogmm.fit_stats.get('residual_mean', float('nan')) * 1000:.1f} mm (budget "
         f"{sogmm.fit_stats.get('residual_budget', float('nan')) * 1000:.1f} mm), {time.perf_counter() - t0:.1f} s; "
-        f"{n_init} surfels at {spacing * 100:.1f} cm spacing over {area:.1f} m^2")
+        f"{n_init} surfels over {area:.1f} m^2, {spacing_note}")
+    info.update(n_init=len(means), n_needed=int(round(n_need)), spacing_scale=scale)
     # colour: the image colour of the nearest observed point
     p, c = observed_points(frames, stride, sweeps)
     _, nn = cKDTree(p).query(means, k=1)
     colors = c[nn]
     params = make_params(means, quats, scales, np.full(len(means), INIT_OPACITY), colors)
-    return params, SOGMMIndex(sogmm), {"sogmm_K": sogmm.K, "area": area, "n_init": len(means)}
+    return params, SOGMMIndex(sogmm), info
 
 
 def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print, sweeps=()):
@@ -394,6 +514,12 @@ def init_from_points(frames, cfg: TrainConfig, spacing: float, log=print, sweeps
     stride = point_stride(frames)
     p, c = observed_points(frames, stride, sweeps)
     pc = voxel_downsample(np.concatenate([p, c], 1), spacing)
+    cap = max_initial_surfels(cfg)
+    if cap and len(pc) > cap:
+        # a voxel sqrt(n / cap) x coarser keeps about cap points of a surface (n scales with 1 / voxel^2)
+        log(f"surfel cap: {len(pc)} observed points at {spacing * 100:.1f} cm; voxel raised "
+            f"{math.sqrt(len(pc) / cap):.2f}x")
+        pc = voxel_downsample(np.concatenate([p, c], 1), spacing * math.sqrt(len(pc) / cap))
     means, colors = pc[:, :3], pc[:, 3:6]
     d, _ = cKDTree(means).query(means, k=4)
     s = np.clip(d[:, 1:].mean(1), 1e-4, 10 * spacing)
@@ -626,6 +752,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
     else:
         params, index, info = init_from_points(frames, cfg, spacing, log, sweeps)
     budget = max(int(cfg.budget_factor * info["n_init"]), MIN_SURFELS)
+    if cfg.max_surfels > 0:
+        budget = min(budget, max(int(cfg.max_surfels), MIN_SURFELS))
 
     eval_frames = frames[:: max(1, len(frames) // EVAL_FRAMES)][:EVAL_FRAMES]
     depth_err_start = depth_error(params, eval_frames)
@@ -641,6 +769,11 @@ def _train(data, cfg, *, resume, progress, log, callback):
     recent, window = [], max(1, iters // LOSS_END_PART)
     history = []
     dens_log = []
+    # the plateau rule may end the geometry steps once the surfel set is settled (density control
+    # done) and the schedule's switches (low resolution, regularisers) are behind
+    plateau = Plateau(int(cfg.plateau_window), float(cfg.plateau_tol))
+    settled_from = dens_until
+    stop, steps_done = "cap", iters
     bar = tqdm(total=iters, desc="train", disable=not progress, dynamic_ncols=True)
     order = rng.integers(0, len(frames), size=iters)
     # one LiDAR view per step, alongside the frame (a separate stream: the frame order is unchanged)
@@ -665,7 +798,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
                 raise
             continue
         guard.ok()
-        if step < dens_until:
+        if step < min(dens_until, settled_from):
             accumulate(grad_stats, params["means"].grad, params["means"].detach(), fr.viewmat, fr.K,
                        fr.width, fr.height)
         # position step decays exponentially (coarse moves first, then refinement)
@@ -681,7 +814,8 @@ def _train(data, cfg, *, resume, progress, log, callback):
         recent.append(vals)
         if len(recent) > window:
             recent.pop(0)
-        if dens_from <= step < dens_until and (step + 1) % cfg.densify_every == 0:
+        plateau.add(fi, sum(vals.get(k, 0.0) for k in DATA_TERMS))
+        if dens_from <= step < min(dens_until, settled_from) and (step + 1) % cfg.densify_every == 0:
             r = densify_and_prune(params, optimizer, grad_stats, grad_threshold=cfg.grad_threshold,
                                   large_scale=cfg.split_scale * spacing, prune_opacity=cfg.prune_opacity,
                                   max_scale=cfg.prune_scale * extent, budget=budget, generator=gen,
@@ -690,7 +824,15 @@ def _train(data, cfg, *, resume, progress, log, callback):
             log(f"density control at step {steps_before + step + 1}: {r['cloned']} cloned, {r['split']} split, "
                 f"{r['pruned']} pruned -> {r['surfels']} surfels (budget {budget})")
             grad_stats = GradStats.zeros(params["means"].shape[0])
-        if (step + 1) % cfg.log_every == 0 or step == iters - 1:
+            if plateau.window and r["cloned"] + r["split"] + r["pruned"] <= DENSITY_SETTLED * r["surfels"]:
+                settled_from = step + 1         # a round that hardly changed the set: it is frozen
+                log(f"density control settled at step {steps_before + step + 1}")
+        done = plateau.stalled(step + 1 - max(settled_from, lowres_steps, reg_from))
+        if done:
+            stop, steps_done = "plateau", step + 1
+            log(f"geometry converged at step {steps_before + step + 1}: the frames' loss improved "
+                f"{plateau.gain * 100:.2f} % over the last {plateau.window} steps (< {plateau.tol * 100:g} %)")
+        if (step + 1) % cfg.log_every == 0 or step == iters - 1 or done:
             history.append({"step": steps_before + step + 1, "loss": ema["total"],
                             "surfels": int(params["means"].shape[0]),
                             "time_s": time.perf_counter() - t_start})
@@ -698,7 +840,10 @@ def _train(data, cfg, *, resume, progress, log, callback):
         bar.update(1)
         if callback is not None:
             callback(steps_before + step + 1, params, time.perf_counter() - t_start)
+        if done:
+            break
     bar.close()
+
     # final prune of surfels that ended up invisible (opacity faded) or degenerate
     with torch.no_grad():
         keep = torch.sigmoid(params["opacity_logit"]) >= cfg.prune_opacity
@@ -725,10 +870,15 @@ def _train(data, cfg, *, resume, progress, log, callback):
     n = int(params["means"].shape[0])
     depth_note = (f"depth error {depth_err_start * 100:.2f} -> {depth_err_end * 100:.2f} cm"
                   if any(bool(fr.valid.any()) for fr in eval_frames) else "no depth images")
-    log(f"trained {iters} steps in {seconds:.1f} s: loss {first_loss['total'] if first_loss else float('nan'):.4f} -> "
+    log(f"trained {steps_done} steps ({stop}{'' if stop == 'plateau' else f' of {iters}'}) in {seconds:.1f} s: loss {first_loss['total'] if first_loss else float('nan'):.4f} -> "
         f"{loss_end.get('total', float('nan')):.4f}, {depth_note}, {n} surfels (budget {budget})")
     # CPU seconds = wall time on an idle machine (training is single-threaded by default)
-    metrics = {"steps": steps_before + iters, "seconds": seconds,
+    metrics = {"steps": steps_before + steps_done, "seconds": seconds,
+               "geometry_steps": steps_done, "geometry_stop": stop, "plateau_gain": plateau.gain,
+               "plateau_checks": plateau.checks,
+               "density_settled": steps_before + min(settled_from, dens_until),
+               "n_needed": int(info.get("n_needed", info["n_init"])),
+               "spacing_scale": float(info.get("spacing_scale", 1.0)),
                "cpu_seconds": time.process_time() - cpu_start, "surfels": n, "budget": budget,
                "sogmm_K": info["sogmm_K"], "n_init": info["n_init"], "prior_area": info["area"],
                "spacing": spacing, "extent": extent,
