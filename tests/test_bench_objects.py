@@ -1,17 +1,10 @@
 """benchmarks/objects.py: its pooling of psimap eval's object rows (no training), so the benchmark's
 table says what the issue's targets mean: missed things count 0, furniture is not among the movable."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import pytest
+from scripts import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-_spec = importlib.util.spec_from_file_location("bench_objects", ROOT / "benchmarks" / "objects.py")
-B = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = B
-_spec.loader.exec_module(B)
+B = load_script("benchmarks/objects.py", "bench_objects")
 
 
 def _obj(i, name, found, f1, f25, role, static_class=False, mass=None, gt_mass=None):

@@ -1,15 +1,11 @@
 """benchmarks/_results.py: one section per benchmark key in RESULTS.md, replaced by the next run."""
-import importlib.util
 import os
 import threading
-from pathlib import Path
 
 import pytest
+from scripts import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("bench_results", ROOT / "benchmarks" / "_results.py")
-R = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(R)
+R = load_script("benchmarks/_results.py", "bench_results")
 
 
 def write(path, key, figure, **kw):

@@ -1,17 +1,10 @@
 """benchmarks/static_world.py: its scene builders (no export), so the benchmark does not rot."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from scripts import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))          # the benchmark imports its sibling _results
-_spec = importlib.util.spec_from_file_location("bench_static_world", ROOT / "benchmarks" / "static_world.py")
-B = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = B                           # its dataclasses look their module up
-_spec.loader.exec_module(B)
+B = load_script("benchmarks/static_world.py", "bench_static_world")
 SMALL = dict(width=64, height=48, views=6)
 
 

@@ -1,9 +1,6 @@
 """Geometry work proportional to the scene (issue #20): surfel spacing from each point's viewing
 distance (far walls coarse, near things fine), large planar stuff coarser, a total cap, and geometry
 steps that end at a loss plateau."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,13 +8,9 @@ import pytest
 from psimap.data import load
 from psimap.train.config import TrainConfig
 from psimap.train.trainer import Plateau, init_from_prior, prepare_frames, target_spacing
+from scripts import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-_spec = importlib.util.spec_from_file_location("bench_budget", ROOT / "benchmarks" / "budget.py")
-B = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = B
-_spec.loader.exec_module(B)
+B = load_script("benchmarks/budget.py", "bench_budget")
 
 BEFORE = B.BEFORE
 
