@@ -89,7 +89,8 @@ class TrainOptions:
     seed: int = opt(0, "random seed")
     resume: str = opt("", "checkpoint to resume from (its surfels; --iters more steps)")
     no_prior: bool = opt(False, "train without the SOGMM prior (plain 2DGS losses; a baseline)")
-    fast: bool = opt(False, "use every core in the renderer (faster, not bit-reproducible)")
+    fast: bool = opt(False, "no effect (kept for older scripts): training always uses every core and "
+                            "stays bit-reproducible")
     no_lidar: bool = opt(False, "ignore the LiDAR sweeps the frames carry (default: they join the prior "
                                 "and a range term)")
     overwrite: bool = overwrite_opt("file")

@@ -21,6 +21,8 @@ native module. The venv's editable install redirects `import psimap` to the work
 meta-path finder that runs before sys.path; a sitecustomize.py on PYTHONPATH removes that finder, so
 the tests - and every subprocess they start (`psimap` console script, `python -c`) - import the copy.
 ../shared is linked next to the copy so tests that read the shared data still run.
+A mutation of the native kernels (psimap/render/csrc) is built with CMake in the copy first; one that
+does not compile counts as caught.
 
 Exit status: 0 every mutation caught, 1 any SURVIVED or ERROR, 2 none survived but some n/a.
 """
@@ -167,6 +169,27 @@ def tests_at(repo: Path, rev: str) -> None:
     subprocess.run(["tar", "-x", "-C", str(repo)], input=archive.stdout, check=True)
 
 
+NATIVE_SOURCES = "psimap/render/csrc/"
+
+
+def swap_in_native_build(repo: Path, build: Path):
+    """Build the copy's (mutated) native module with CMake and put it where the copy imports it
+    from; returns (link path, what it linked to before) to restore, or the compiler's last line
+    when the mutated code does not build."""
+    cfg = subprocess.run(["cmake", "-S", str(repo), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release",
+                          f"-DPython_EXECUTABLE={sys.executable}"], capture_output=True, text=True)
+    out = cfg if cfg.returncode else subprocess.run(
+        ["cmake", "--build", str(build), "-j", "2"], capture_output=True, text=True)
+    if out.returncode:
+        return "does not compile: " + last_line(out.stdout + out.stderr)
+    built = next(build.rglob("_native*.so"))
+    link = next((repo / "psimap" / "render").glob("_native*.so"))
+    before = Path(os.readlink(link))
+    link.unlink()
+    link.symlink_to(built)
+    return link, before
+
+
 def run_tests(repo: Path, env: dict, tests: list[str]) -> tuple[int, float, str]:
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "--no-header", *tests]
@@ -236,11 +259,22 @@ def main(argv=None) -> int:
                 continue
             path = repo / m.file
             text = path.read_text()
+            so_link = None
             try:
                 path.write_text(text.replace(m.original, m.mutated, 1))
+                if m.file.startswith(NATIVE_SOURCES):
+                    so_link = swap_in_native_build(repo, Path(t) / "native-build")
+                    if isinstance(so_link, str):        # the mutated kernels do not compile
+                        results.append((m, "caught", so_link, 0.0))
+                        print(f"{m.id:5} caught    {m.title}: {so_link}", flush=True)
+                        so_link = None
+                        continue
                 rc, dt, out = run_tests(repo, env, m.tests)
             finally:
                 path.write_text(text)
+                if so_link is not None:
+                    so_link[0].unlink()
+                    so_link[0].symlink_to(so_link[1])
             if rc in (1, 2):            # failed tests, or a collection error the mutation caused
                 status = "caught"
             elif rc == 0:

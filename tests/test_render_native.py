@@ -305,12 +305,14 @@ def test_hard_cases_match_reference(name):
 
 # ---------------------------------------------------------------- threads, API, errors
 
-def test_one_and_two_threads_agree():
+def test_thread_counts_agree_bit_for_bit():
+    """Training is reproducible on any number of cores: forward and backward give the same bits for
+    1, 2 and 3 threads (the backward reduces its per-tile rows per surfel in tile order)."""
     seed = fresh_seed()
     viewmat, K = camera()
     scene = random_scene(120, seed)
     results = []
-    for threads in (1, 2):
+    for threads in (1, 2, 3):
         native.set_num_threads(threads)
         assert native.get_num_threads() == threads
         leaves = [t.float().clone().requires_grad_(True) for t in scene]
@@ -318,11 +320,12 @@ def test_one_and_two_threads_agree():
                         backend="native")
         loss = sum((getattr(out, k) * (i + 1)).sum() for i, k in enumerate(OUTPUTS))
         results.append((out, torch.autograd.grad(loss, leaves)))
-    (a, ga), (b, gb) = results
-    for k in OUTPUTS:    # the forward is per pixel: bit-identical whatever the schedule
-        assert torch.equal(getattr(a, k), getattr(b, k)), (k, seed)
-    for x, y in zip(ga, gb):   # per-thread gradient buffers: only the summation order differs
-        assert torch.allclose(x, y, rtol=1e-5, atol=1e-6 * float(x.abs().max())), seed
+    (a, ga) = results[0]
+    for b, gb in results[1:]:
+        for k in OUTPUTS:    # the forward is per pixel: bit-identical whatever the schedule
+            assert torch.equal(getattr(a, k), getattr(b, k)), (k, seed)
+        for x, y in zip(ga, gb):
+            assert torch.equal(x, y), seed
 
 
 def test_auto_backend_uses_native_on_cpu():

@@ -95,6 +95,25 @@ def test_deterministic_for_a_seed(scene_frames):
     assert len(c) != len(a) or not torch.equal(a.surfels["means"], c.surfels["means"])
 
 
+def test_renderer_uses_the_cores_and_gives_them_back(scene_frames):
+    """Training renders on every core this process may use (or cfg.threads), the same bits as one
+    thread, and leaves the caller's native thread count as it was."""
+    from psimap.render import native
+    from psimap.train.trainer import available_cores
+
+    frames, _ = scene_frames
+    seen = []
+    native.set_num_threads(1)
+    a = train(sequence(frames), cfg(iters=12), log=lambda m: None,
+              callback=lambda step, params, t: seen.append(native.get_num_threads()))
+    assert set(seen) == {available_cores()}
+    assert native.get_num_threads() == 1
+    b = train(sequence(frames), cfg(iters=12, threads=3), log=lambda m: None,
+              callback=lambda step, params, t: seen.append(native.get_num_threads()))
+    assert seen[-1] == 3
+    assert _surfel_digest(a) == _surfel_digest(b)
+
+
 def _surfel_digest(scene) -> str:
     import hashlib
 

@@ -38,8 +38,6 @@ def cli_train(opts) -> int:
         cfg.iters = opts.iters
     if getattr(opts, "no_prior", False):
         cfg.use_prior = False
-    if getattr(opts, "fast", False):
-        cfg.deterministic = False
     if getattr(opts, "no_lidar", False):
         cfg.lidar = False
     import sys

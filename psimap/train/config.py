@@ -25,9 +25,11 @@ class TrainConfig:
                             "scene F1 rises to ~360 steps and is flat after (benchmarks/RESULTS.md); "
                             "450 keeps the default training with the panoptic phase under 3 min")
     seed: int = _f(0, "random seed: same seed, same result on CPU")
-    deterministic: bool = _f(True, "bit-reproducible runs: the native renderer uses one thread "
-                                   "(its multi-threaded backward sums tiles in run-dependent order)")
-    threads: int = _f(0, "renderer threads when not deterministic (0 = all cores)")
+    deterministic: bool = _f(True, "no effect, kept so older manifests and checkpoints load: training is "
+                                   "bit-reproducible on any number of threads (the native backward "
+                                   "reduces per tile, then per surfel in tile order)")
+    threads: int = _f(0, "native renderer threads (0 = every core this process may use); the "
+                         "result does not depend on it")
     lowres_until: float = _f(0.3, "fraction of the steps rendered at half resolution (cheap, "
                                   "coarse geometry first)")
     log_every: int = _f(50, "steps between progress-bar / log updates")

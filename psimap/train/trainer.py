@@ -8,6 +8,7 @@ field on the frozen surfel set (`panoptic_phase`, psimap.panoptic.fit's loop) ->
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -690,13 +691,18 @@ def train(data, cfg: TrainConfig | None = None, *, resume=None, progress: bool |
     Raises PsimapError (Diverged) when a loss term or gradient stays non-finite; never returns NaN.
     """
     threads = torch.get_num_threads()
+    native_threads = _native_threads()
     # torch's intra-op threads spin-wait badly on a busy CPU and the per-step tensors are small:
-    # one thread is both faster in practice and bit-reproducible
+    # one thread is faster in practice; the renderer's kernels, most of a step, use the cores
     torch.set_num_threads(1)
     try:
         return _train(data, cfg, resume=resume, progress=progress, log=log, callback=callback)
     finally:
         torch.set_num_threads(threads)
+        if native_threads:
+            from psimap.render import native
+
+            native.set_num_threads(native_threads)
 
 
 def _train(data, cfg, *, resume, progress, log, callback):
@@ -898,9 +904,32 @@ def _train(data, cfg, *, resume, progress, log, callback):
     return Scene(surfels, classes=classes, cameras=cams, queries=queries, config=config, metrics=metrics)
 
 
+def _native_threads() -> int:
+    """The native kernels' thread count now (0 when the native backend is not built)."""
+    from psimap.render.api import native_available
+
+    if not native_available():
+        return 0
+    from psimap.render import native
+
+    return native.get_num_threads()
+
+
 def _set_threads(cfg: TrainConfig) -> None:
-    try:
-        from psimap.render import native
-    except Exception:          # native backend not built: the torch reference is deterministic
+    """The renderer's threads: cfg.threads, or every core this process may use. Any count gives
+    the same bits (the native backward reduces in tile order)."""
+    from psimap.render.api import native_available
+
+    if not native_available():     # the torch reference: torch's own (single) thread
         return
-    native.set_num_threads(1 if cfg.deterministic else (cfg.threads or torch.get_num_threads()))
+    from psimap.render import native
+
+    native.set_num_threads(cfg.threads or available_cores())
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity; os.cpu_count where that is unknown)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)

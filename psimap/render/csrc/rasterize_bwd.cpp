@@ -1,9 +1,11 @@
 // Backward rasterization: per pixel, back to front from the last blended surfel, reconstructing
 // the transmittance T_i = T_{i+1} / (1 - alpha_i) from the saved final one. Gradients are summed
-// per tile, added into a per-thread buffer (no atomics), and the buffers are reduced in thread
-// order at the end.
+// per (tile, surfel) bin entry, each tile by whichever thread takes it (no atomics), then reduced
+// per surfel in tile order: the sum is the same bits for any thread count and schedule, so
+// training stays reproducible on every core.
 #include <algorithm>
 #include <cstring>
+#include <memory>
 
 #include <omp.h>
 
@@ -24,33 +26,29 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
     const int tiles = bins.tiles_x * bins.tiles_y;
     const float near = cfg.near, far = cfg.far;
     const float* bg = cfg.background;
-    const int threads = omp_get_max_threads();
-    std::vector<std::vector<float>> thread_geo(threads), thread_feat(threads);
-    int used_threads = 1;
+    const int64_t pairs = bins.offsets[tiles];
+    // One gradient row per bin entry (tile, surfel): written by the tile's thread only.
+    // (uninitialised: every tile zeroes its own rows)
+    std::unique_ptr<float[]> entry_geo(new float[static_cast<size_t>(pairs) * kGSlots]);
+    std::unique_ptr<float[]> entry_feat(new float[static_cast<size_t>(pairs) * C + 1]);
 
 #pragma omp parallel
     {
-        const int tid = omp_get_thread_num();
-#pragma omp single
-        used_threads = omp_get_num_threads();
-        std::vector<float>& geo = thread_geo[tid];
-        std::vector<float>& feat = thread_feat[tid];
-        geo.assign(static_cast<size_t>(N) * kGSlots, 0.0f);
-        feat.assign(static_cast<size_t>(N) * C, 0.0f);
         std::vector<SurfelParams> params;
         std::vector<Footprint> footprints;
         std::vector<Footprint>* fp = cfg.exact_footprint ? &footprints : nullptr;
         std::vector<int32_t> block_pos;
         int32_t block_start[kBlocks * kBlocks + 1];
-        std::vector<float> tile_geo, tile_feat;
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < tiles; ++t) {
             const int n = bins.offsets[t + 1] - bins.offsets[t];
             if (n == 0) continue;
             gather_tile(in, bins, t, params, fp);
             const int32_t* ids = bins.ids + bins.offsets[t];
-            tile_geo.assign(static_cast<size_t>(n) * kGSlots, 0.0f);
-            tile_feat.assign(static_cast<size_t>(n) * C, 0.0f);
+            float* tile_geo = entry_geo.get() + static_cast<size_t>(bins.offsets[t]) * kGSlots;
+            float* tile_feat = entry_feat.get() + static_cast<size_t>(bins.offsets[t]) * C;
+            std::fill(tile_geo, tile_geo + static_cast<size_t>(n) * kGSlots, 0.0f);
+            std::fill(tile_feat, tile_feat + static_cast<size_t>(n) * C, 0.0f);
             const int tx = t % bins.tiles_x, ty = t / bins.tiles_x;
             block_lists(params, tx * kTile, ty * kTile, block_pos, block_start, fp);
             const int px1 = std::min(W, (tx + 1) * kTile), py1 = std::min(H, (ty + 1) * kTile);
@@ -108,10 +106,10 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
                                     g_nrm[0] * s.normal[0] + g_nrm[1] * s.normal[1] +
                                     g_nrm[2] * s.normal[2] +
                                     static_cast<float>(g_dist * (m * m * A - 2.0 * m * D + D2));
-                        float* tg = tile_geo.data() + static_cast<size_t>(j) * kGSlots;
+                        float* tg = tile_geo + static_cast<size_t>(j) * kGSlots;
                         if (selected && C > 0) {
                             const float* f = in.feature + static_cast<int64_t>(ids[j]) * C;
-                            float* tf = tile_feat.data() + static_cast<size_t>(j) * C;
+                            float* tf = tile_feat + static_cast<size_t>(j) * C;
                             float dot = 0.0f;
                             for (int c = 0; c < C; ++c) {
                                 dot += g_f[c] * f[c];
@@ -139,40 +137,39 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
                     }
                 }
             }
-            for (int j = 0; j < n; ++j) {
-                const int64_t i = ids[j];
-                float* dst = geo.data() + i * kGSlots;
-                const float* src = tile_geo.data() + static_cast<size_t>(j) * kGSlots;
-                for (int k = 0; k < kGSlots; ++k) dst[k] += src[k];
-                float* dstf = feat.data() + i * C;
-                const float* srcf = tile_feat.data() + static_cast<size_t>(j) * C;
-                for (int c = 0; c < C; ++c) dstf[c] += srcf[c];
-            }
         }
     }
 
-    // Reduce the per-thread buffers in thread order.
-#pragma omp parallel for schedule(static)
-    for (int64_t i = 0; i < N; ++i) {
-        float acc[kGSlots] = {};
-        for (int th = 0; th < used_threads; ++th) {
-            const float* src = thread_geo[th].data() + i * kGSlots;
-            for (int k = 0; k < kGSlots; ++k) acc[k] += src[k];
+    // Reduce per surfel in tile order. Each thread owns a contiguous range of surfel ids and walks
+    // every entry (ids only: 4 bytes each), adding the rows of its own surfels.
+    std::unique_ptr<float[]> acc_geo(new float[static_cast<size_t>(N) * kGSlots + 1]);
+#pragma omp parallel
+    {
+        const int th = omp_get_thread_num(), nth = omp_get_num_threads();
+        const int64_t lo = N * th / nth, hi = N * (th + 1) / nth;
+        std::fill(acc_geo.get() + lo * kGSlots, acc_geo.get() + hi * kGSlots, 0.0f);
+        if (C > 0) std::fill(g.feat + lo * C, g.feat + hi * C, 0.0f);
+        for (int64_t e = 0; e < pairs; ++e) {
+            const int64_t i = bins.ids[e];
+            if (i < lo || i >= hi) continue;
+            float* dst = acc_geo.get() + i * kGSlots;
+            const float* src = entry_geo.get() + e * kGSlots;
+            for (int k = 0; k < kGSlots; ++k) dst[k] += src[k];
+            float* dstf = g.feat + i * C;
+            const float* srcf = entry_feat.get() + e * C;
+            for (int c = 0; c < C; ++c) dstf[c] += srcf[c];
         }
-        for (int k = 0; k < 9; ++k) g.T[9 * i + k] = acc[kGT + k];
-        g.center[2 * i] = acc[kGCenter];
-        g.center[2 * i + 1] = acc[kGCenter + 1];
-        g.depth_key[i] = acc[kGDepthKey];
-        for (int k = 0; k < 3; ++k) {
-            g.normal_c[3 * i + k] = acc[kGNormal + k];
-            g.color[3 * i + k] = acc[kGColor + k];
-        }
-        g.opacity[i] = acc[kGOpacity];
-        float* fo = g.feat + i * C;
-        for (int c = 0; c < C; ++c) {
-            float a = 0.0f;
-            for (int th = 0; th < used_threads; ++th) a += thread_feat[th][i * C + c];
-            fo[c] = a;
+        for (int64_t i = lo; i < hi; ++i) {
+            const float* acc = acc_geo.get() + i * kGSlots;
+            for (int k = 0; k < 9; ++k) g.T[9 * i + k] = acc[kGT + k];
+            g.center[2 * i] = acc[kGCenter];
+            g.center[2 * i + 1] = acc[kGCenter + 1];
+            g.depth_key[i] = acc[kGDepthKey];
+            for (int k = 0; k < 3; ++k) {
+                g.normal_c[3 * i + k] = acc[kGNormal + k];
+                g.color[3 * i + k] = acc[kGColor + k];
+            }
+            g.opacity[i] = acc[kGOpacity];
         }
     }
 }
