@@ -371,3 +371,30 @@ def test_bad_buffers_are_clear_errors():
     proj = project_surfels(*big[:4], viewmat.float(), K.float(), W, H)
     with pytest.raises(ValueError, match="topk"):
         native.rasterize_native(proj, big[3], big[4], big[5], W, H, topk=native.MAX_TOPK + 1)
+
+
+@pytest.mark.parametrize("topk", [1, 3, 8])
+def test_topk_weights_gather_equals_the_feature_render(topk):
+    """A Top-K feature render of fixed geometry is a gather of the surfels' features with the
+    weights topk_weights reports (the panoptic phase trains on that gather), for any features;
+    alpha is the render's."""
+    from psimap.render.native import project_surfels as project_native, topk_weights
+
+    seed = fresh_seed()
+    viewmat, K = camera()
+    m, q, s, o, c, f = [t.float() for t in random_scene(150, seed)]
+    out = rasterize(m, q, s, o, c, viewmat.float(), K.float(), W, H, features=f, topk=topk,
+                    backend="native")
+    proj = project_native(m, q, s, o, viewmat.float(), K.float(), W, H, NEAR, FAR)
+    ids, w, alpha = topk_weights(proj, o, W, H, topk)
+    assert ids.shape == (H, W, topk) and w.shape == (H, W, topk)
+    assert torch.equal(alpha, out.alpha)
+    assert bool(((ids >= 0) == (w > 0)).all()) and int(ids.max()) < m.shape[0]
+    assert int((ids >= 0).sum(-1).max()) == topk        # some pixel fills every slot
+    assert torch.equal(ids.ge(0).sum(-1) > 0, out.alpha > 0)
+    gathered = (w[..., None] * f[ids.clamp_min(0)]).sum(-2)
+    assert torch.allclose(gathered, out.features, rtol=1e-5, atol=1e-5 * float(out.features.abs().max())), seed
+    # weights: alpha T of distinct surfels, each pixel's summing to at most its alpha
+    assert bool((w.sum(-1) <= out.alpha + 1e-5).all())
+    srt = ids.sort(-1).values
+    assert not bool(((srt[..., 1:] == srt[..., :-1]) & (srt[..., 1:] >= 0)).any())

@@ -148,7 +148,7 @@ class _RasterizeNative(torch.autograd.Function):
         topk_pos = _empty((H, W, K), np.int32)
         plan.evaluated = int(_native.rasterize_forward(
             *_kernel_args(plan, arrays, C), rgb, alpha, depth, median, normal, dist, feat,
-            t_final, n_last, median_pos, dist_sums, topk_pos))
+            t_final, n_last, median_pos, dist_sums, topk_pos, np.empty(0, np.float32)))
         ctx.plan = plan
         ctx.arrays = arrays
         # depth is copied: the caller may modify the returned tensor in place.
@@ -176,6 +176,61 @@ class _RasterizeNative(torch.autograd.Function):
         return (*grads, None)
 
 
+def _make_plan(proj: Projected, width: int, height: int, topk: int | None, tiles: str, near: float,
+               far: float, background: torch.Tensor | None, force_topk: bool = False):
+    """Bins the surfels into tiles; returns (_Plan, binned [N] bool, most surfels in one tile)."""
+    box = (proj.box_precise if tiles == "precise" else proj.box_circle).detach().cpu()
+    box_np = np.ascontiguousarray(box.numpy().astype(np.int32, copy=False))
+    binned = (proj.valid.detach().cpu().numpy() & (box_np[:, 2] > box_np[:, 0])
+              & (box_np[:, 3] > box_np[:, 1]))
+    offsets, ids = _native.bin_tiles(box_np, binned.astype(np.uint8), _f32(proj.depth_key), int(width),
+                                     int(height))
+    counts = np.diff(offsets)
+    max_pairs = int(counts.max()) if counts.size else 0
+    # Top-K over at least as many surfels as any tile holds selects them all: blend every one.
+    k = 0 if (topk is None or (topk >= max_pairs and not force_topk)) else int(topk)
+    if k > MAX_TOPK:
+        raise ValueError(f"rasterize: the native backend supports topk <= {MAX_TOPK} "
+                         f"(got {topk}); use backend='reference' or a smaller topk")
+    bg = (np.zeros(3, np.float32) if background is None
+          else np.ascontiguousarray(background.detach().to(torch.float32).cpu().numpy().reshape(3)))
+    plan = _Plan(box=box_np, offsets=offsets, ids=ids, width=int(width), height=int(height), topk=k,
+                 exact_footprint=tiles == "precise", near=float(near), far=float(far), background=bg)
+    return plan, binned, max_pairs
+
+
+@torch.no_grad()
+def topk_weights(proj: Projected, opacities: torch.Tensor, width: int, height: int, topk: int,
+                 tiles: str = "precise", near: float = 0.2,
+                 far: float = 1000.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Which surfels a Top-K feature render blends at each pixel, and with what weight: (ids
+    [H, W, topk] int64 surfel indices, -1 padded; weights [H, W, topk] float32 w = alpha T, 0
+    padded; alpha [H, W]). For fixed geometry, `rasterize(..., features=f, topk=topk).features`
+    equals `(weights[..., None] * f[ids.clamp_min(0)]).sum(-2)` up to float rounding: a panoptic
+    step on frozen geometry gathers instead of rasterizing (psimap.panoptic.fit)."""
+    n = int(opacities.shape[0])
+    if not 1 <= topk <= MAX_TOPK:
+        raise ValueError(f"topk_weights: topk must be in 1..{MAX_TOPK}, got {topk}")
+    plan, _, _ = _make_plan(proj, width, height, topk, tiles, near, far, None, force_topk=True)
+    H, W, K = plan.height, plan.width, plan.topk
+    arrays = [_f32(proj.T), _f32(proj.center), _f32(proj.depth_key), _f32(proj.normal_c), _f32(opacities),
+              np.zeros((n, 3), np.float32), np.zeros((n, 1), np.float32)]
+    out = [_empty((H, W, 3)), _empty((H, W)), _empty((H, W)), _empty((H, W)), _empty((H, W, 3)),
+           _empty((H, W)), _empty((H, W, 1)), _empty((H, W)), _empty((H, W), np.int32),
+           _empty((H, W), np.int32), _empty((H, W, 3), np.float64)]
+    pos, w = _empty((H, W, K), np.int32), _empty((H, W, K))
+    _native.rasterize_forward(*_kernel_args(plan, arrays, 1), *out, pos, w)
+    # tile-list position -> surfel index, through the slice of the bins of the pixel's tile
+    tile = _native.TILE
+    tiles_x = (W + tile - 1) // tile
+    ty, tx = np.arange(H) // tile, np.arange(W) // tile
+    start = plan.offsets[:-1][ty[:, None] * tiles_x + tx[None, :]].astype(np.int64)      # [H, W]
+    sel = pos >= 0
+    ids = np.full((H, W, K), -1, np.int64)
+    ids[sel] = plan.ids[(start[:, :, None] + pos)[sel]]
+    return torch.from_numpy(ids), torch.from_numpy(w), torch.from_numpy(out[1])
+
+
 def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor,
                      features: torch.Tensor | None, width: int, height: int, topk: int | None = None,
                      tiles: str = "precise", near: float = 0.2, far: float = 1000.0,
@@ -190,24 +245,9 @@ def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Ten
     if features is None:
         features = colors.new_zeros(n, 0)
     C = int(features.shape[1])
-    box = (proj.box_precise if tiles == "precise" else proj.box_circle).detach().cpu()
-    box_np = np.ascontiguousarray(box.numpy().astype(np.int32, copy=False))
-    binned = (proj.valid.detach().cpu().numpy() & (box_np[:, 2] > box_np[:, 0])
-              & (box_np[:, 3] > box_np[:, 1]))
-    offsets, ids = _native.bin_tiles(box_np, binned.astype(np.uint8), _f32(proj.depth_key), int(width),
-                                     int(height))
-    counts = np.diff(offsets)
-    max_pairs = int(counts.max()) if counts.size else 0
-    # Top-K over at least as many surfels as any tile holds selects them all: blend every one.
-    k = 0 if (topk is None or C == 0 or topk >= max_pairs) else int(topk)
-    if k > MAX_TOPK:
-        raise ValueError(f"rasterize: the native backend supports topk <= {MAX_TOPK} "
-                         f"(got {topk}); use backend='reference' or a smaller topk")
-    bg = (np.zeros(3, np.float32) if background is None
-          else np.ascontiguousarray(background.detach().to(torch.float32).cpu().numpy().reshape(3)))
-    plan = _Plan(box=box_np, offsets=offsets, ids=ids, width=int(width), height=int(height), topk=k,
-                 exact_footprint=tiles == "precise",
-                 near=float(near), far=float(far), background=bg)
+    plan, binned, max_pairs = _make_plan(proj, width, height, topk if C > 0 else None, tiles, near, far,
+                                         background)
+    offsets, ids = plan.offsets, plan.ids
     outs = _RasterizeNative.apply(proj.T, proj.center, proj.depth_key, proj.normal_c,
                                   opacities, colors, features, plan)
     rgb, alpha, depth, median, normal, dist, feat = outs

@@ -213,13 +213,16 @@ NB_MODULE(_native, m) {
            Array<float> out_depth, Array<float> out_median, Array<float> out_normal,
            Array<float> out_distortion, Array<float> out_feature, Array<float> t_final,
            Array<int32_t> n_last, Array<int32_t> median_pos, Array<double> dist_sums,
-           Array<int32_t> topk_pos) {
+           Array<int32_t> topk_pos, Array<float> topk_w) {
             Common c = make_common(T, center, depth_key, normal, opacity, color, feature, channels,
                                    box, offsets, ids, width, height, topk, exact_footprint, near, far,
                                    background);
             ForwardBuffers b = make_buffers(c, out_rgb, out_alpha, out_depth, out_median,
                                             out_normal, out_distortion, out_feature, t_final,
                                             n_last, median_pos, dist_sums, topk_pos);
+            // topk_w: empty = not wanted
+            if (topk_w.size() > 0)
+                b.topk_w = checked(topk_w, static_cast<size_t>(width) * height * topk, "topk_w");
             nb::gil_scoped_release release;
             return rasterize_forward(c.in, c.bins, c.cfg, b);
         },

@@ -56,6 +56,8 @@ struct ForwardBuffers {
     double* dist_sums;   // [H, W, 3] sum w, sum w m, sum w m^2 (distortion totals, double: the
                          // distortion is a small difference of O(1) moments)
     int32_t* topk_pos;   // [H, W, K] selected tile-list positions, -1 padded (K = topk > 0)
+    float* topk_w = nullptr;  // [H, W, K] their blending weights w = alpha T, 0 padded; optional
+                              // (a frozen geometry's feature renders are then a gather: panoptic)
 };
 
 struct BackwardGrads {

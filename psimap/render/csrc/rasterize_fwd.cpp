@@ -114,6 +114,10 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
                         float* acc = feat_acc.data();
                         std::fill(acc, acc + C, 0.0f);
                         int32_t* saved = out.topk_pos + pix * K;
+                        if (out.topk_w != nullptr) {
+                            float* ws = out.topk_w + pix * K;
+                            for (int k = 0; k < K; ++k) ws[k] = k < top_count ? top_w[k] : 0.0f;
+                        }
                         for (int k = 0; k < top_count; ++k) {
                             saved[k] = top_pos[k];
                             const float* f = in.feature + static_cast<int64_t>(ids[top_pos[k]]) * C;
