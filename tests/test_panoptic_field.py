@@ -115,7 +115,34 @@ def test_fit_is_deterministic_whatever_the_global_rng_and_thread_count():
     assert torch.equal(a["queries"]["feature"], b["queries"]["feature"])
 
 
-def _train_two_boxes(iters, surfels=None, joint=None, seed=2):
+def test_frozen_blend_trains_the_field_a_rasterized_run_trains():
+    """On fixed geometry each view's feature render is computed once as a sparse Top-K blend
+    (fit.frozen_blend) and the steps multiply by it: the field it trains is the one that
+    rasterizing every step trains, up to float rounding (same queries, same instance ids)."""
+    from psimap.panoptic import fit
+    from psimap.render.api import native_available
+
+    if not native_available():
+        pytest.skip("the frozen blend needs the native renderer")
+    s, frames, _ = _two_box_scene(n_frames=6)
+    cfg = PanopticConfig(init_frames=3, adjust_start=20, adjust_every=20, pixels_per_step=2048)
+    calls = []
+    real = fit.frozen_blend
+    fit.frozen_blend = lambda *a, **k: calls.append(1) or real(*a, **k)
+    try:
+        a = fit_panoptic(s, frames, CLASSES, iters=40, cfg=cfg, seed=4, frozen=True)
+    finally:
+        fit.frozen_blend = real
+    b = fit_panoptic(s, frames, CLASSES, iters=40, cfg=cfg, seed=4, frozen=False)
+    assert len(calls) == 6                      # once per view, not per step
+    assert torch.equal(a["surfels"]["instance_id"], b["surfels"]["instance_id"])
+    assert a["queries"]["feature"].shape == b["queries"]["feature"].shape
+    assert torch.allclose(a["surfels"]["instance"], b["surfels"]["instance"], atol=2e-3)
+    assert torch.allclose(a["surfels"]["semantic"], b["surfels"]["semantic"], atol=2e-3)
+    assert int(a["surfels"]["instance_id"].max()) == 2
+
+
+def _train_two_boxes(iters, surfels=None, joint=None, seed=2, frozen=True):
     """train_field on the two-box scene (6 views), by default on its fixed surfels: (state, metrics)."""
     from psimap.panoptic.fit import train_field, view_of
 
@@ -124,7 +151,7 @@ def _train_two_boxes(iters, surfels=None, joint=None, seed=2):
     cfg = PanopticConfig(init_frames=3, adjust_start=10, adjust_every=10, pixels_per_step=2048)
     return train_field([view_of(f) for f in frames], CLASSES, cfg, surfels or (lambda: geometry), iters=iters,
                        scene_scale=1.2, rng=np.random.default_rng(seed),
-                       generator=torch.Generator().manual_seed(seed), joint=joint)
+                       generator=torch.Generator().manual_seed(seed), joint=joint, frozen=frozen)
 
 
 def test_nan_loss_or_gradient_steps_are_skipped_and_a_persistent_one_raises(monkeypatch):
@@ -165,10 +192,10 @@ def test_nan_loss_or_gradient_steps_are_skipped_and_a_persistent_one_raises(monk
 def test_fixed_geometry_visibility_cache_changes_nothing():
     """With fixed geometry the loop computes each view's visible surfels once; re-reading the
     geometry every step (as when it is trained jointly, here with a zero learning rate and no
-    geometry loss) gives the bit-identical field."""
+    geometry loss) gives the bit-identical field (both rasterize every step: frozen=False)."""
     from psimap.panoptic.fit import JointGeometry
 
-    cached, m1 = _train_two_boxes(iters=12)
+    cached, m1 = _train_two_boxes(iters=12, frozen=False)     # rasterized, as the joint run
     s, _, _ = _two_box_scene(n_frames=6)
     params = {k: s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities")}
     reads = {"n": 0}

@@ -68,25 +68,110 @@ class JointGeometry:
     optimizer: torch.optim.Optimizer
 
 
+def _project(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
+    """Stage 1 of the renderer, native when it is built (no gradients needed here)."""
+    from psimap.render.api import native_available
+
+    if native_available() and means.device.type == "cpu":
+        from psimap.render.native import project_surfels
+    else:
+        from psimap.render.project import project_surfels
+    return project_surfels(means, quats, scales, opacities, w2c.to(means.dtype), K.to(means.dtype),
+                           width, height, near, far)
+
+
 def visible_surfels(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
     """Indices [V] of surfels whose 3-sigma footprint touches the image (the frustum-local set).
 
     means [N, 3], quats [N, 4] unit, scales [N, 2], opacities [N]; near / far: the renderer's
     default clip planes."""
-    from psimap.render.project import project_surfels
-
     with torch.no_grad():
-        p = project_surfels(means, quats, scales, opacities, w2c.to(means.dtype), K.to(means.dtype),
-                            width, height, near, far)
+        p = _project(means, quats, scales, opacities, w2c, K, width, height, near, far)
         box = p.box_precise
         hit = p.valid & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
     return torch.nonzero(hit).flatten()
 
 
+# Frozen geometry blends the same surfels with the same weights at every step: each view's Top-K
+# feature render is then one sparse matrix, kept while they fit this many bytes (8 slots x 12 bytes
+# per pixel: ~7 MB for a 320x240 view); the other views are rasterized each step as before.
+BLEND_CACHE_BYTES = 1 << 30
+
+
+@dataclass
+class BlendedView:
+    """What PanopticField.losses reads of a render: features [H, W, C], alpha [H, W]."""
+
+    features: torch.Tensor
+    alpha: torch.Tensor
+
+
+class _SparseBlend(torch.autograd.Function):
+    """features [P, C] = A [P, V] @ f [V, C]; the backward multiplies by the stored transpose."""
+
+    @staticmethod
+    def forward(ctx, f, A, At):
+        ctx.At = At
+        return A @ f
+
+    @staticmethod
+    def backward(ctx, v_features):
+        return ctx.At @ v_features, None, None
+
+
+@dataclass
+class FrozenBlend:
+    """One view's Top-K feature blending on frozen geometry: rendered features = A @ f for per-surfel
+    features f [V, C] of the view's visible surfels. A [H*W, V] and its transpose At are CSR."""
+
+    A: torch.Tensor
+    At: torch.Tensor
+    alpha: torch.Tensor          # [H, W]
+    nbytes: int
+
+    def render(self, feats: torch.Tensor) -> BlendedView:
+        """feats [V, C] -> BlendedView (differentiable in feats)."""
+        h, w = self.alpha.shape
+        out = _SparseBlend.apply(feats, self.A, self.At)
+        return BlendedView(features=out.reshape(h, w, -1), alpha=self.alpha)
+
+
+def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height, topk: int,
+                 near=0.2, far=1000.0) -> FrozenBlend | None:
+    """The FrozenBlend of a view for the surfels `visible` [V] (indices into means [N, 3] ...), or
+    None where the native renderer is not built or Top-K is off (then every step rasterizes)."""
+    import warnings
+
+    from psimap.render.api import native_available
+
+    if not (native_available() and means.device.type == "cpu" and topk):
+        return None
+    from psimap.render.native import MAX_TOPK, topk_weights
+
+    if topk > MAX_TOPK:
+        return None
+    with torch.no_grad():
+        idx = visible
+        p = _project(means[idx], quats[idx], scales[idx], opacities[idx], w2c, K, width, height, near, far)
+        ids, w, alpha = topk_weights(p, opacities[idx].float(), width, height, int(topk), near=near, far=far)
+    v = int(idx.numel())
+    ids, w = ids.reshape(-1, ids.shape[-1]), w.reshape(-1, w.shape[-1])
+    keep = ids >= 0
+    rows = torch.arange(ids.shape[0]).unsqueeze(1).expand_as(ids)[keep]
+    cols, vals = ids[keep], w[keep]
+    with warnings.catch_warnings():     # "sparse CSR support is in beta": matmul is all we use
+        warnings.simplefilter("ignore")
+        A = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (ids.shape[0], v)).coalesce()
+        At = torch.sparse_coo_tensor(torch.stack([cols, rows]), vals, (v, ids.shape[0])).coalesce()
+        A, At = A.to_sparse_csr(), At.to_sparse_csr()
+    nbytes = 2 * int(vals.numel()) * 12 + 4 * int(alpha.numel())
+    return FrozenBlend(A=A, At=At, alpha=alpha.to(means.dtype), nbytes=nbytes)
+
+
 def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters: int, scene_scale: float,
                 rng: np.random.Generator, generator: torch.Generator, joint: JointGeometry | None = None,
                 backend: str = "auto", log=None, progress: bool = False,
-                log_every: int = 50) -> tuple[dict, dict]:
+                log_every: int = 50, frozen: bool = True) -> tuple[dict, dict]:
     """Train a new panoptic field on `views`; returns (PanopticField.state_for_checkpoint, metrics).
 
     views: Views (TrainFrames); those without labels are left out. surfels() -> (means [N, 3],
@@ -95,6 +180,9 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     it. scene_scale: the scene extent (m) for the queries' positional encoding. rng draws the
     order of the views; generator every torch draw (query init, pixel samples): one seed, one
     result. Raises PsimapError when no view is labelled, Diverged when steps keep being NaN / inf.
+    frozen: with fixed geometry (`joint` None) and backend "auto", each view's feature render is
+    computed once as a sparse blend (frozen_blend) and every later step is a sparse matrix product;
+    False rasterizes every step (the same numbers up to float rounding).
     """
     from tqdm import tqdm
 
@@ -102,6 +190,7 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
 
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
+    frozen = frozen and backend in ("auto", "native")
     train_views = labelled(views)
     if not train_views:
         raise PsimapError("no frame has semantic or instance pseudo-labels: nothing to train the "
@@ -115,6 +204,8 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
         f"{len(classes)} classes")
     order = rng.integers(0, len(train_views), size=iters)
     visible: dict[int, torch.Tensor] = {}        # per view, while the geometry is fixed
+    blends: dict[int, FrozenBlend | None] = {}   # per view, while the geometry is fixed (frozen_blend)
+    blend_bytes = 0
     guard, removed_total = NonFiniteGuard(), 0
     with tqdm(total=iters, desc="panoptic", disable=not progress, dynamic_ncols=True) as bar:
         for step in range(iters):
@@ -129,8 +220,19 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                 if joint is None:
                     visible[i] = vis
 
+            blend = blends.get(i)
+            if joint is None and frozen and i not in blends:
+                blend = None
+                if blend_bytes < BLEND_CACHE_BYTES:
+                    blend = frozen_blend(means, quats, scales, opac, vis, fr.viewmat, fr.K, fr.width,
+                                         fr.height, cfg.topk)
+                    blend_bytes += blend.nbytes if blend is not None else 0
+                blends[i] = blend
+
             def render(idx, feats, topk, fr=fr, means=means, quats=quats, scales=scales, opac=opac,
-                       colors=colors):
+                       colors=colors, blend=blend):
+                if blend is not None and topk == cfg.topk:
+                    return blend.render(feats)
                 return rasterize(means[idx], quats[idx], scales[idx], opac[idx], colors[idx],
                                  fr.viewmat, fr.K, fr.width, fr.height, features=feats, topk=topk,
                                  backend=backend)
@@ -180,8 +282,10 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
 
 
 def fit_panoptic(surfels: dict, frames, classes, *, iters: int = 300, cfg: PanopticConfig | None = None,
-                 seed: int = 0, backend: str = "auto", progress: bool = False, log=None) -> dict:
+                 seed: int = 0, backend: str = "auto", progress: bool = False, log=None,
+                 frozen: bool = True) -> dict:
     """Train the panoptic field on fixed geometry; returns `PanopticField.state_for_checkpoint`.
+    frozen: see train_field.
 
     surfels: means [N, 3], quats [N, 4], scales [N, 2], opacities [N] (tensors); frames: a sequence
     of psimap.data Frames with per-frame pseudo-labels (frames without are skipped).
@@ -200,7 +304,7 @@ def fit_panoptic(surfels: dict, frames, classes, *, iters: int = 300, cfg: Panop
         state, _ = train_field([view_of(f) for f in frames], classes, cfg or PanopticConfig(),
                                lambda: geometry, iters=iters, scene_scale=extent,
                                rng=np.random.default_rng(seed), generator=torch.Generator().manual_seed(seed),
-                               backend=backend, log=log, progress=progress)
+                               backend=backend, log=log, progress=progress, frozen=frozen)
         return state
     finally:
         torch.set_num_threads(threads)

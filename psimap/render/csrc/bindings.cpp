@@ -8,6 +8,8 @@
 #include <nanobind/stl/tuple.h>
 #include <omp.h>
 
+#include "threads.h"
+
 #include "project.h"
 #include "rasterize.h"
 
@@ -176,8 +178,8 @@ void bind_project(nb::module_& m, const char* suffix) {
 NB_MODULE(_native, m) {
     m.doc() = "psimap native CPU surfel rasterizer (C++17 / OpenMP)";
 
-    m.def("set_num_threads", [](int n) { omp_set_num_threads(n < 1 ? 1 : n); }, nb::arg("n"));
-    m.def("get_num_threads", []() { return omp_get_max_threads(); });
+    m.def("set_num_threads", [](int n) { set_kernel_threads(n); }, nb::arg("n"));
+    m.def("get_num_threads", []() { return kernel_threads(); });
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
     bind_project<float>(m, "f32");

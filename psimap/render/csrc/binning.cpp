@@ -7,6 +7,8 @@
 
 #include <omp.h>
 
+#include "threads.h"
+
 #include "rasterize.h"
 
 namespace psimap {
@@ -44,7 +46,7 @@ void bin_tiles(const int32_t* boxes, const uint8_t* valid, const float* depth_ke
         r0 = static_cast<int>(static_cast<int64_t>(tiles_y) * thread / threads);
         r1 = static_cast<int>(static_cast<int64_t>(tiles_y) * (thread + 1) / threads);
     };
-#pragma omp parallel
+#pragma omp parallel num_threads(kernel_threads())
     {
         int r0, r1;
         band(omp_get_thread_num(), omp_get_num_threads(), r0, r1);
@@ -57,7 +59,7 @@ void bin_tiles(const int32_t* boxes, const uint8_t* valid, const float* depth_ke
     offsets.assign(tiles + 1, 0);
     std::partial_sum(counts.begin(), counts.end(), offsets.begin());
     ids.resize(offsets[tiles]);
-#pragma omp parallel
+#pragma omp parallel num_threads(kernel_threads())
     {
         int r0, r1;
         band(omp_get_thread_num(), omp_get_num_threads(), r0, r1);

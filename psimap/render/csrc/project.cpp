@@ -8,6 +8,8 @@
 
 #include <omp.h>
 
+#include "threads.h"
+
 #include "project.h"
 
 namespace psimap {
@@ -143,7 +145,7 @@ void project_forward(const ProjectInputs<F>& in, const ProjectOutputs<F>& out) {
     // discrete decisions (near / far culling, the facing sign of an edge-on normal) agree with it.
     const Frame<F> f = frame_of<F>(in.viewmat, in.K);
     const F near = static_cast<F>(in.near), far = static_cast<F>(in.far);
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) num_threads(kernel_threads())
     for (int64_t i = 0; i < in.n; ++i) {
         F mu[3], q[4], s[2], qnorm, R[9], mu_c[3], axes[9], T[9];
         const bool finite = safe_inputs(in.means, in.quats, in.scales, in.opacity, i, mu, q, s, qnorm);
@@ -176,7 +178,7 @@ void project_backward(const ProjectInputs<F>& in, const uint8_t* valid, const ui
                       const ProjectGrads<F>& g) {
     // In double (the gradients are sums of products; float32 loses digits to cancellation).
     const Frame<double> f = frame_of<double>(in.viewmat, in.K);
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) num_threads(kernel_threads())
     for (int64_t i = 0; i < in.n; ++i) {
         double mu[3], q[4], s[2], qnorm, R[9], mu_c[3], axes[9], T[9];
         const bool finite = safe_inputs(in.means, in.quats, in.scales, in.opacity, i, mu, q, s, qnorm);

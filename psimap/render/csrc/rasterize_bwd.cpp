@@ -9,6 +9,8 @@
 
 #include <omp.h>
 
+#include "threads.h"
+
 #include "rasterize.h"
 
 namespace psimap {
@@ -32,7 +34,7 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
     std::unique_ptr<float[]> entry_geo(new float[static_cast<size_t>(pairs) * kGSlots]);
     std::unique_ptr<float[]> entry_feat(new float[static_cast<size_t>(pairs) * C + 1]);
 
-#pragma omp parallel
+#pragma omp parallel num_threads(kernel_threads())
     {
         std::vector<SurfelParams> params;
         std::vector<Footprint> footprints;
@@ -143,7 +145,7 @@ void rasterize_backward(const SurfelInputs& in, const TileBins& bins, const Rast
     // Reduce per surfel in tile order. Each thread owns a contiguous range of surfel ids and walks
     // every entry (ids only: 4 bytes each), adding the rows of its own surfels.
     std::unique_ptr<float[]> acc_geo(new float[static_cast<size_t>(N) * kGSlots + 1]);
-#pragma omp parallel
+#pragma omp parallel num_threads(kernel_threads())
     {
         const int th = omp_get_thread_num(), nth = omp_get_num_threads();
         const int64_t lo = N * th / nth, hi = N * (th + 1) / nth;

@@ -5,6 +5,8 @@
 
 #include <omp.h>
 
+#include "threads.h"
+
 #include "rasterize.h"
 
 namespace psimap {
@@ -15,7 +17,7 @@ int64_t rasterize_forward(const SurfelInputs& in, const TileBins& bins, const Ra
     const int tiles = bins.tiles_x * bins.tiles_y;
     const float near = cfg.near, far = cfg.far;
     int64_t evaluated = 0;
-#pragma omp parallel reduction(+ : evaluated)
+#pragma omp parallel reduction(+ : evaluated) num_threads(kernel_threads())
     {
         std::vector<SurfelParams> params;
         std::vector<Footprint> footprints;
