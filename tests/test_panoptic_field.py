@@ -117,8 +117,8 @@ def test_fit_is_deterministic_whatever_the_global_rng_and_thread_count():
 
 def test_frozen_blend_trains_the_field_a_rasterized_run_trains():
     """On fixed geometry each view's feature render is computed once as a sparse Top-K blend
-    (fit.frozen_blend) and the steps multiply by it: the field it trains is the one that
-    rasterizing every step trains, up to float rounding (same queries, same instance ids)."""
+    (fit.frozen_blend) and the steps multiply by it, over the surfels some pixel blends: the field
+    it trains labels the surfels as rasterizing every step does (same queries, same ids)."""
     from psimap.panoptic import fit
     from psimap.render.api import native_available
 
@@ -137,9 +137,11 @@ def test_frozen_blend_trains_the_field_a_rasterized_run_trains():
     assert len(calls) == 6                      # once per view, not per step
     assert torch.equal(a["surfels"]["instance_id"], b["surfels"]["instance_id"])
     assert a["queries"]["feature"].shape == b["queries"]["feature"].shape
-    assert torch.allclose(a["surfels"]["instance"], b["surfels"]["instance"], atol=2e-3)
-    assert torch.allclose(a["surfels"]["semantic"], b["surfels"]["semantic"], atol=2e-3)
+    assert torch.equal(a["surfels"]["semantic_id"], b["surfels"]["semantic_id"])
     assert int(a["surfels"]["instance_id"].max()) == 2
+    # hidden surfels (in the frustum, blended by no pixel) are left out of a frozen step: their
+    # features stay as initialised, where rasterizing moves them a little through the attention
+    assert not torch.equal(a["surfels"]["instance"], b["surfels"]["instance"])
 
 
 def _train_two_boxes(iters, surfels=None, joint=None, seed=2, frozen=True):

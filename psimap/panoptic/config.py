@@ -60,3 +60,7 @@ class PanopticConfig:
     spawn_split: bool = True        # no spawn for a mask drawn mostly by a query busy with a same-class mask
     max_spawn_per_step: int = 2
     max_queries: int = 256
+    # the steps end once the labels settle: at an adjustment step (adjust_every) with no query
+    # spawned or dropped since the previous one, fewer than this fraction of the surfels changed
+    # class or instance since it; the caller's step count stays the cap. 0 = always run the cap
+    settle_tol: float = 0.01

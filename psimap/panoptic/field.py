@@ -140,6 +140,7 @@ class PanopticField(nn.Module):
         self.class_votes = torch.zeros(queries.count, self.class_ids.numel())
         self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
         self.steps = 0
+        self.query_changes = 0                        # queries spawned + dropped so far
         # (point set [P, 3], feature [F] or None) of masks that no query covers
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         self.last_drops: dict[str, int] = {}          # {rule: queries dropped} at the last adjustment
@@ -187,6 +188,7 @@ class PanopticField(nn.Module):
         self.comatched = F.pad(self.comatched, (0, a, 0, a))
         self.class_votes = F.pad(self.class_votes, (0, 0, 0, a))
         self.born = torch.cat([self.born, torch.full((a,), float(self.steps))])
+        self.query_changes += a
         self._make_optimizers()
 
     def _queue_uncovered(self, masks: torch.Tensor, match, prob: torch.Tensor, depth: torch.Tensor,
@@ -404,6 +406,7 @@ class PanopticField(nn.Module):
         keep = ~drop
         removed = int(drop.sum())
         if removed:
+            self.query_changes += removed
             self.queries.keep(keep)
             self.matched = self.matched[keep]
             self.visible = self.visible[keep]
@@ -415,11 +418,29 @@ class PanopticField(nn.Module):
             self._make_optimizers()
         return removed
 
-    def maybe_adjust(self, means: torch.Tensor) -> int:
+    def adjustment_due(self) -> bool:
+        """Whether this step is on the adjustment schedule (adjust_start, then every adjust_every)."""
         c = self.cfg
-        if self.steps >= c.adjust_start and (self.steps - c.adjust_start) % c.adjust_every == 0:
-            return self.adjust(means)
-        return 0
+        return self.steps >= c.adjust_start and (self.steps - c.adjust_start) % c.adjust_every == 0
+
+    def maybe_adjust(self, means: torch.Tensor) -> int:
+        return self.adjust(means) if self.adjustment_due() else 0
+
+    def current_labels(self, means: torch.Tensor) -> torch.Tensor:
+        """[N] long, one code per (semantic argmax, instance argmax) of each surfel, instance 0 for
+        stuff: what the export's labels would be before class fusion and smoothing (cheap enough
+        to compare every adjustment period: the settle test of psimap.panoptic.fit)."""
+        n = means.shape[0]
+        with torch.no_grad():
+            q = self.queries.count
+            if self.class_ids.numel():
+                col = self.semantic.argmax(-1)
+                thing = self.class_thing[col]
+            else:
+                col = torch.zeros(n, dtype=torch.long)
+                thing = torch.ones(n, dtype=torch.bool)
+            owner = self.affinity_all(means).argmax(-1) + 1 if q else torch.zeros(n, dtype=torch.long)
+            return col * (q + 1) + torch.where(thing, owner, torch.zeros_like(owner))
 
     # ---- export -------------------------------------------------------------------------------
     def assign(self, means: torch.Tensor) -> dict:

@@ -122,11 +122,14 @@ class _SparseBlend(torch.autograd.Function):
 @dataclass
 class FrozenBlend:
     """One view's Top-K feature blending on frozen geometry: rendered features = A @ f for per-surfel
-    features f [V, C] of the view's visible surfels. A [H*W, V] and its transpose At are CSR."""
+    features f [V, C] of the surfels `visible` [V] that some pixel's Top-K blends (the others of the
+    frustum are hidden: they receive no gradient and are left out of the step). A [H*W, V] and its
+    transpose At are CSR."""
 
     A: torch.Tensor
     At: torch.Tensor
     alpha: torch.Tensor          # [H, W]
+    visible: torch.Tensor        # [V] long surfel indices
     nbytes: int
 
     def render(self, feats: torch.Tensor) -> BlendedView:
@@ -138,8 +141,9 @@ class FrozenBlend:
 
 def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height, topk: int,
                  near=0.2, far=1000.0) -> FrozenBlend | None:
-    """The FrozenBlend of a view for the surfels `visible` [V] (indices into means [N, 3] ...), or
-    None where the native renderer is not built or Top-K is off (then every step rasterizes)."""
+    """The FrozenBlend of a view whose frustum holds the surfels `visible` [V] (indices into means
+    [N, 3] ...), or None where the native renderer is not built, Top-K is off or no pixel is covered
+    (then every step rasterizes)."""
     import warnings
 
     from psimap.render.api import native_available
@@ -154,18 +158,42 @@ def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height
         idx = visible
         p = _project(means[idx], quats[idx], scales[idx], opacities[idx], w2c, K, width, height, near, far)
         ids, w, alpha = topk_weights(p, opacities[idx].float(), width, height, int(topk), near=near, far=far)
-    v = int(idx.numel())
     ids, w = ids.reshape(-1, ids.shape[-1]), w.reshape(-1, w.shape[-1])
     keep = ids >= 0
     rows = torch.arange(ids.shape[0]).unsqueeze(1).expand_as(ids)[keep]
-    cols, vals = ids[keep], w[keep]
+    used, cols = torch.unique(ids[keep], return_inverse=True)      # columns: the blended surfels only
+    vals = w[keep]
+    v = int(used.numel())
+    if v == 0:
+        return None
     with warnings.catch_warnings():     # "sparse CSR support is in beta": matmul is all we use
         warnings.simplefilter("ignore")
         A = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (ids.shape[0], v)).coalesce()
         At = torch.sparse_coo_tensor(torch.stack([cols, rows]), vals, (v, ids.shape[0])).coalesce()
         A, At = A.to_sparse_csr(), At.to_sparse_csr()
     nbytes = 2 * int(vals.numel()) * 12 + 4 * int(alpha.numel())
-    return FrozenBlend(A=A, At=At, alpha=alpha.to(means.dtype), nbytes=nbytes)
+    return FrozenBlend(A=A, At=At, alpha=alpha.to(means.dtype), visible=idx[used], nbytes=nbytes)
+
+
+class LabelSettle:
+    """The panoptic steps' stop rule (PanopticConfig.settle_tol): at each adjustment step, the
+    fraction of surfels whose label (PanopticField.current_labels) changed since the previous
+    adjustment step; settled when it is below tol and no query was spawned or dropped between the
+    two. The loss is no signal: it keeps falling ~10 % per period long after the ids settle."""
+
+    def __init__(self, tol: float):
+        self.tol = float(tol)
+        self.prev: torch.Tensor | None = None
+        self.prev_changes = -1
+        self.history: list[dict] = []
+
+    def settled(self, field, means: torch.Tensor) -> bool:
+        labels = field.current_labels(means)
+        same_queries = self.prev is not None and field.query_changes == self.prev_changes
+        changed = float((labels != self.prev).float().mean()) if same_queries else 1.0
+        self.history.append({"step": int(field.steps), "changed": changed, "queries": int(field.queries.count)})
+        self.prev, self.prev_changes = labels, field.query_changes
+        return self.tol > 0 and same_queries and changed < self.tol
 
 
 def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters: int, scene_scale: float,
@@ -207,6 +235,8 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     blends: dict[int, FrozenBlend | None] = {}   # per view, while the geometry is fixed (frozen_blend)
     blend_bytes = 0
     guard, removed_total = NonFiniteGuard(), 0
+    settle = LabelSettle(cfg.settle_tol)
+    steps_done, stop = iters, "cap"
     with tqdm(total=iters, desc="panoptic", disable=not progress, dynamic_ncols=True) as bar:
         for step in range(iters):
             i = int(order[step])
@@ -228,6 +258,10 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                                          fr.height, cfg.topk)
                     blend_bytes += blend.nbytes if blend is not None else 0
                 blends[i] = blend
+                if blend is not None:
+                    visible[i] = blend.visible
+            if blend is not None:
+                vis = blend.visible
 
             def render(idx, feats, topk, fr=fr, means=means, quats=quats, scales=scales, opac=opac,
                        colors=colors, blend=blend):
@@ -268,11 +302,18 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                 bar.set_postfix(ins=f"{float(l_ins.detach()):.3f}", sem=f"{float(l_sem.detach()):.3f}",
                                 queries=field.queries.count)
             bar.update(1)
+            if field.adjustment_due() and step + 1 < iters and settle.settled(field, means.detach()):
+                steps_done, stop = step + 1, "settled"
+                log(f"panoptic labels settled at step {step + 1}: "
+                    f"{settle.history[-1]['changed'] * 100:.2f} % of the surfels changed over the last "
+                    f"{cfg.adjust_every} steps (< {cfg.settle_tol * 100:g} %), no query added or dropped")
+                break
     state = field.state_for_checkpoint(means.detach())
     n_inst = int(state["surfels"]["instance_id"].max()) if n else 0
     # the checkpoint keeps only the queries that own an instance at export
     q_final = int(state["queries"]["feature"].shape[0])
-    metrics = {"panoptic_steps": int(iters), "panoptic_seconds": time.perf_counter() - t0,
+    metrics = {"panoptic_steps": int(steps_done), "panoptic_stop": stop,
+               "panoptic_label_changes": settle.history, "panoptic_seconds": time.perf_counter() - t0,
                "queries_initial": int(q0), "queries_final": q_final,
                "queries_removed": int(removed_total), "instances": n_inst,
                "panoptic_skipped_steps": int(guard.skipped)}
