@@ -47,13 +47,23 @@ def surface_distance(a, b, samples: int = DEFAULT_SAMPLES, seed: int = 0) -> tup
 
 def distance_to_surface(mesh, points: np.ndarray) -> np.ndarray:
     """Unsigned distance [P] float64 of points [P, 3] to the triangles of `mesh` (Open3D, float32)."""
+    return surface_distance_query(mesh)(points)
+
+
+def surface_distance_query(mesh):
+    """points [P, 3] -> unsigned distance [P] float64 to the triangles of `mesh`: one Open3D scene
+    (and its BVH, built at the first query) for many queries, as decimation's bisection asks of
+    the mesh it simplifies."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
-    d = scene.compute_distance(o3d.core.Tensor(points.astype(np.float32)))
-    return d.numpy().astype(np.float64)
+
+    def distance(points: np.ndarray) -> np.ndarray:
+        return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
+
+    return distance
 
 
 def simplify_to_count(mesh, faces: int, method: str = "auto"):
@@ -155,6 +165,7 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
     if n0 <= min_faces:
         return best
     ref_pts = sample_surface(mesh, samples, seed, with_vertices=True)
+    to_mesh = surface_distance_query(mesh)
     curve = []
 
     method = "auto"
@@ -169,7 +180,7 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
         if len(cand.faces) == 0 or (watertight and not cand.is_watertight):
             return cand, np.inf, np.inf
         d1 = distance_to_surface(cand, ref_pts)
-        d2 = distance_to_surface(mesh, sample_surface(cand, samples, seed + 1, with_vertices=True))
+        d2 = to_mesh(sample_surface(cand, samples, seed + 1, with_vertices=True))
         h, m = float(max(d1.max(), d2.max())), float(0.5 * (d1.mean() + d2.mean()))
         curve.append((int(len(cand.faces)), h, m))
         return cand, h, m

@@ -144,13 +144,14 @@ def test_frozen_blend_trains_the_field_a_rasterized_run_trains():
     assert not torch.equal(a["surfels"]["instance"], b["surfels"]["instance"])
 
 
-def _train_two_boxes(iters, surfels=None, joint=None, seed=2, frozen=True):
+def _train_two_boxes(iters, surfels=None, joint=None, seed=2, frozen=True, settle_tol=0.0):
     """train_field on the two-box scene (6 views), by default on its fixed surfels: (state, metrics)."""
     from psimap.panoptic.fit import train_field, view_of
 
     s, frames, _ = _two_box_scene(n_frames=6)
     geometry = (s["means"], s["quats"], s["scales"], s["opacities"], torch.zeros_like(s["means"]))
-    cfg = PanopticConfig(init_frames=3, adjust_start=10, adjust_every=10, pixels_per_step=2048)
+    cfg = PanopticConfig(init_frames=3, adjust_start=10, adjust_every=10, pixels_per_step=2048,
+                         settle_tol=settle_tol)
     return train_field([view_of(f) for f in frames], CLASSES, cfg, surfels or (lambda: geometry), iters=iters,
                        scene_scale=1.2, rng=np.random.default_rng(seed),
                        generator=torch.Generator().manual_seed(seed), joint=joint, frozen=frozen)
@@ -215,3 +216,118 @@ def test_fixed_geometry_visibility_cache_changes_nothing():
     for k in ("semantic", "instance", "instance_id", "semantic_id"):
         assert torch.equal(cached["surfels"][k], moving["surfels"][k]), k
     assert torch.equal(cached["queries"]["feature"], moving["queries"]["feature"])
+
+
+def test_label_settle_rule():
+    """Settled after two calm periods in a row: no query added or dropped, fewer than tol of the
+    thing surfels changed instance, no stuff class gained or lost 5 % of its surfels; a stuff class
+    too small to be kept does not count, nor do thing classes."""
+    from psimap.panoptic.fit import LabelSettle
+
+    class Field:
+        class_thing = torch.tensor([False, False, True])          # columns: floor, wall, box
+
+        def __init__(self):
+            self.steps, self.query_changes = 0, 0
+            self.sem = torch.zeros(1000, dtype=torch.long)
+            self.sem[600:] = 1
+            self.sem[900:] = 2
+            self.inst = torch.zeros(1000, dtype=torch.long)
+            self.inst[900:] = 1
+            self.queries = type("Q", (), {"count": 1})()
+
+        def current_labels(self, means):
+            return self.sem.clone(), self.inst.clone()
+
+    f, rule = Field(), LabelSettle(0.02, min_stuff_share=0.05)
+    assert not rule.settled(f, None)                       # nothing to compare with yet
+    f.inst[900:903] = 0                                    # 3 % of the thing surfels changed
+    assert not rule.settled(f, None)
+    assert not rule.settled(f, None)                       # calm once
+    assert rule.settled(f, None)                           # calm twice: settled
+    f.sem[:40] = 1                                         # floor lost 6.7 % of its surfels
+    assert not rule.settled(f, None) and rule.calm == 0
+    f.sem[940:960] = 0                                     # thing class columns do not count ...
+    f.sem[0] = 2
+    assert not rule.settled(f, None) and rule.calm == 1
+    f.query_changes += 1                                   # ... queries do
+    assert not rule.settled(f, None) and rule.calm == 0
+    hist = [(round(h["instances_changed"], 4), round(h["classes_changed"], 4)) for h in rule.history]
+    # wall: 300 -> 340 surfels, the most changed segment
+    assert hist[1] == (0.03, 0.0) and hist[4][1] == round(40 / 340, 4) and hist[6] == (1.0, 1.0)
+    off = LabelSettle(0.0)                                 # tol 0: never settled
+    assert not any(off.settled(f, None) for _ in range(4))
+
+
+def test_panoptic_steps_stop_when_labels_settle():
+    """On the two-box scene the labels settle long before a 300-step cap; with settle_tol 0 the cap
+    runs. The settled field labels the boxes as the capped one does."""
+    capped, m0 = _train_two_boxes(iters=150)
+    settled, m1 = _train_two_boxes(iters=150, settle_tol=0.01)
+    assert m0["panoptic_steps"] == 150 and m0["panoptic_stop"] == "cap"
+    assert m1["panoptic_stop"] == "settled" and 20 <= m1["panoptic_steps"] < 150, m1["panoptic_label_changes"]
+    last = m1["panoptic_label_changes"][-2:]
+    assert all(h["instances_changed"] < 0.01 for h in last) and last[-1]["step"] == m1["panoptic_steps"]
+    agree = float((capped["surfels"]["instance_id"] == settled["surfels"]["instance_id"]).float().mean())
+    assert agree > 0.97 and m1["instances"] == m0["instances"] == 2
+
+
+def test_a_stray_stuff_class_gives_its_surfels_to_their_next_class():
+    """A stuff class on a handful of surfels (a few mislabelled pixels' worth) is no segment: those
+    surfels take their next class; a stuff class above the floor and thing classes stay."""
+    from psimap.panoptic.field import PanopticField
+    from psimap.panoptic.queries import InstanceQueries
+
+    classes = [ClassInfo(1, "floor", False), ClassInfo(2, "wall", False), ClassInfo(3, "ceiling", False),
+               ClassInfo(4, "mug", True)]
+    n = 10_000
+    q = InstanceQueries(torch.zeros(1, 16), torch.zeros(1, 3), torch.eye(3)[None], temperature=0.1,
+                        scene_scale=1.0)
+    field = PanopticField(n, classes, q, PanopticConfig(min_stuff_share=5e-4, min_instance_surfels=10))
+    with torch.no_grad():
+        field.semantic.zero_()
+        field.semantic[:6000, 0] = 2.0                  # floor
+        field.semantic[6000:9980, 1] = 2.0              # wall
+        field.semantic[9980:9984, 2] = 2.0              # ceiling: 4 surfels, below 5 (= 5e-4 n) and 10
+        field.semantic[9980:9984, 1] = 1.0              # ... whose next class is wall
+        field.semantic[9984:, 3] = 2.0                  # mug: 16 surfels, a thing: kept
+    col = field.semantic_columns()
+    assert torch.bincount(col, minlength=4).tolist() == [6000, 3984, 0, 16]
+    with torch.no_grad():
+        field.semantic[9980:9984, 2] = 0.0
+        field.semantic[9950:9980, 2] = 3.0              # ceiling on 30 surfels: kept
+    assert torch.bincount(field.semantic_columns(), minlength=4).tolist() == [6000, 3954, 30, 16]
+    assert field.assign(torch.zeros(n, 3))["semantic_id"].bincount(minlength=5)[3] == 30
+
+
+def test_one_query_per_object_seen_in_several_frames():
+    """init_queries: one mask per object and frame used to give one query each (every step costs in
+    proportion to the queries); masks of one class whose points cover each other now share one.
+    A small object's mask inside a merged mask (two objects in one 2D mask) keeps its own."""
+    from psimap.panoptic.field import init_queries, same_surface_groups
+    from psimap.panoptic.fit import view_of
+
+    s, frames, _ = _two_box_scene(n_frames=6)
+    views = [view_of(f) for f in frames]
+    merged = init_queries(views, CLASSES, PanopticConfig(init_frames=6), scene_scale=1.2)
+    apart = init_queries(views, CLASSES, PanopticConfig(init_frames=6, init_merge=0.0), scene_scale=1.2)
+    assert apart.count == 12 and merged.count == 2
+    # the two queries sit on the two boxes
+    centres = sorted(merged.mean[:, 0].tolist())
+    assert abs(centres[0] + 0.35) < 0.08 and abs(centres[1] - 0.35) < 0.08
+
+    g = torch.Generator().manual_seed(0)
+    big = torch.rand(3000, 3, generator=g) * 0.3                              # a 30 cm box's points
+    small = torch.rand(300, 3, generator=g) * 0.05 + torch.tensor([0.3, 0.0, 0.0])   # a 5 cm mug beside it
+    view_a, view_b = big[big[:, 0] < 0.12], big[big[:, 0] > 0.18]            # two sides, 6 cm apart
+    both = torch.cat([big, small])                                            # one 2D mask over both
+    label = same_surface_groups([view_a, view_b, small, both, small.clone()], [0, 0, 0, 0, 0],
+                                [0, 1, 0, 2, 3], 0.5)
+    assert label[0] != label[1]                  # most of each side lies beyond the other: apart
+    label = same_surface_groups([big, big.clone(), small, both, small.clone()], [0, 0, 0, 0, 0],
+                                [0, 1, 0, 2, 3], 0.5)
+    assert label[0] == label[1] == label[3]      # the box's views (and the merged mask, mostly box)
+    assert label[2] == label[4] != label[0]      # the mug's views stay the mug's
+    # same frame or another class: never joined
+    assert len(set(same_surface_groups([big, big.clone()], [0, 0], [0, 0], 0.5).tolist())) == 2
+    assert len(set(same_surface_groups([big, big.clone()], [0, 1], [0, 1], 0.5).tolist())) == 2

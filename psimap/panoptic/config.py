@@ -14,6 +14,10 @@ class PanopticConfig:
     topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
     temperature: float = 0.1        # softmax temperature over query affinities
     init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
+    # masks of one class from two of those frames share a query when at least this fraction of each
+    # one's back-projected points lies on the other's surface (one object seen twice); 0 = one query
+    # per mask (field.same_surface_groups)
+    init_merge: float = 0.5
     # 2D masks smaller than this fraction of the image are ignored (5 px at 160x120: bottles and
     # balls there cover a median 7-20 px; the former 0.002 = 38 px ignored most of their masks)
     min_mask_fraction: float = 0.0003
@@ -63,4 +67,9 @@ class PanopticConfig:
     # the steps end once the labels settle: at an adjustment step (adjust_every) with no query
     # spawned or dropped since the previous one, fewer than this fraction of the surfels changed
     # class or instance since it; the caller's step count stays the cap. 0 = always run the cap
-    settle_tol: float = 0.01
+    settle_tol: float = 0.02
+    # a stuff class that holds fewer than this share of the surfels (and fewer than
+    # min_instance_surfels) is label noise, a few mislabelled pixels' worth (tabletop: 18 of 128k
+    # surfels "ceiling" in a room with no ceiling in view, one false segment in every view that
+    # sees them): its surfels take their next most likely class
+    min_stuff_share: float = 5e-4

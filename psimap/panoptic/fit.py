@@ -175,25 +175,72 @@ def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height
     return FrozenBlend(A=A, At=At, alpha=alpha.to(means.dtype), visible=idx[used], nbytes=nbytes)
 
 
-class LabelSettle:
-    """The panoptic steps' stop rule (PanopticConfig.settle_tol): at each adjustment step, the
-    fraction of surfels whose label (PanopticField.current_labels) changed since the previous
-    adjustment step; settled when it is below tol and no query was spawned or dropped between the
-    two. The loss is no signal: it keeps falling ~10 % per period long after the ids settle."""
+def segment_change(prev: torch.Tensor, now: torch.Tensor, min_size: int) -> float:
+    """Largest share of one segment's surfels that changed between two labellings [N] (codes):
+    per label L, |prev == L xor now == L| / max(|prev == L|, |now == L|), over the labels with at
+    least min_size surfels in either. A segment that appears, vanishes or shrinks counts in full,
+    however few surfels it has next to the scene (panoptic quality counts segments, not surfels)."""
+    codes = torch.cat([prev, now]).unique()
+    k = codes.numel()
+    a = torch.searchsorted(codes, prev)
+    b = torch.searchsorted(codes, now)
+    size_a = torch.bincount(a, minlength=k).float()
+    size_b = torch.bincount(b, minlength=k).float()
+    moved = prev != now
+    out_a = torch.bincount(a[moved], minlength=k).float()      # left label a
+    in_b = torch.bincount(b[moved], minlength=k).float()       # joined label b
+    big = torch.maximum(size_a, size_b)
+    ok = big >= max(1, int(min_size))
+    if not bool(ok.any()):
+        return 0.0
+    return float(((out_a + in_b)[ok] / big[ok]).max())
 
-    def __init__(self, tol: float):
+
+# A stuff class segment has settled when fewer than this share of its surfels changed class over a
+# period (classes too small to be kept, PanopticConfig.min_stuff_share, do not count)
+SETTLE_CLASS_TOL = 0.05
+# Settled periods in a row before the steps end: a query the useless / duplicate rules would drop
+# next period can sit through one calm period (tabletop, one of three view orders: 6 instances
+# for 5 objects when stopping after the first)
+SETTLE_PERIODS = 2
+
+
+class LabelSettle:
+    """The panoptic steps' stop rule (PanopticConfig.settle_tol): at each adjustment step, compare
+    the labels (PanopticField.current_labels) with the previous adjustment step's. Settled when no
+    query was spawned or dropped between the two, fewer than `tol` of the thing surfels changed
+    instance, and no stuff class segment changed by SETTLE_CLASS_TOL of its surfels (segment_change):
+    a stray stuff class, still shrinking, is a false segment in every view that sees it. Thing
+    classes do not count: an instance takes the class of the masks its query was matched to
+    (PanopticConfig.query_class), whatever its surfels' argmax says. The loss is no signal: it keeps
+    falling ~10 % per period long after the labels settle."""
+
+    def __init__(self, tol: float, min_stuff_share: float = 0.0, periods: int = SETTLE_PERIODS):
         self.tol = float(tol)
-        self.prev: torch.Tensor | None = None
+        self.min_stuff_share = float(min_stuff_share)
+        self.periods = int(periods)
+        self.calm = 0                       # settled periods in a row
+        self.prev: tuple[torch.Tensor, torch.Tensor] | None = None
         self.prev_changes = -1
         self.history: list[dict] = []
 
     def settled(self, field, means: torch.Tensor) -> bool:
-        labels = field.current_labels(means)
+        sem, inst = field.current_labels(means)
         same_queries = self.prev is not None and field.query_changes == self.prev_changes
-        changed = float((labels != self.prev).float().mean()) if same_queries else 1.0
-        self.history.append({"step": int(field.steps), "changed": changed, "queries": int(field.queries.count)})
-        self.prev, self.prev_changes = labels, field.query_changes
-        return self.tol > 0 and same_queries and changed < self.tol
+        classes, owners = 1.0, 1.0
+        if same_queries:
+            stuff = ~field.class_thing[sem] | ~field.class_thing[self.prev[0]] if field.class_thing.numel() else None
+            min_size = max(10, int(self.min_stuff_share * sem.numel()))
+            classes = (segment_change(self.prev[0][stuff], sem[stuff], min_size)
+                       if stuff is not None and bool(stuff.any()) else 0.0)
+            thing = (inst > 0) | (self.prev[1] > 0)
+            owners = float((inst != self.prev[1])[thing].float().mean()) if bool(thing.any()) else 0.0
+        self.history.append({"step": int(field.steps), "classes_changed": classes,
+                             "instances_changed": owners, "queries": int(field.queries.count)})
+        self.prev, self.prev_changes = (sem, inst), field.query_changes
+        calm = self.tol > 0 and same_queries and owners < self.tol and classes < SETTLE_CLASS_TOL
+        self.calm = self.calm + 1 if calm else 0
+        return self.calm >= self.periods
 
 
 def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters: int, scene_scale: float,
@@ -235,7 +282,7 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     blends: dict[int, FrozenBlend | None] = {}   # per view, while the geometry is fixed (frozen_blend)
     blend_bytes = 0
     guard, removed_total = NonFiniteGuard(), 0
-    settle = LabelSettle(cfg.settle_tol)
+    settle = LabelSettle(cfg.settle_tol, cfg.min_stuff_share)
     steps_done, stop = iters, "cap"
     with tqdm(total=iters, desc="panoptic", disable=not progress, dynamic_ncols=True) as bar:
         for step in range(iters):
@@ -304,9 +351,11 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
             bar.update(1)
             if field.adjustment_due() and step + 1 < iters and settle.settled(field, means.detach()):
                 steps_done, stop = step + 1, "settled"
-                log(f"panoptic labels settled at step {step + 1}: "
-                    f"{settle.history[-1]['changed'] * 100:.2f} % of the surfels changed over the last "
-                    f"{cfg.adjust_every} steps (< {cfg.settle_tol * 100:g} %), no query added or dropped")
+                h = settle.history[-1]
+                log(f"panoptic labels settled at step {step + 1}: over the last {cfg.adjust_every} steps "
+                    f"{h['instances_changed'] * 100:.2f} % of the thing surfels changed instance (< "
+                    f"{cfg.settle_tol * 100:g} %), no class lost or gained more than "
+                    f"{h['classes_changed'] * 100:.1f} % of its surfels, no query added or dropped")
                 break
     state = field.state_for_checkpoint(means.detach())
     n_inst = int(state["surfels"]["instance_id"].max()) if n else 0

@@ -692,8 +692,8 @@ def train(data, cfg: TrainConfig | None = None, *, resume=None, progress: bool |
     """
     threads = torch.get_num_threads()
     native_threads = _native_threads()
-    # torch's intra-op threads spin-wait badly on a busy CPU and the per-step tensors are small:
-    # one thread is faster in practice; the renderer's kernels, most of a step, use the cores
+    # one torch thread outside the geometry steps (small tensors: extra threads only spin-wait);
+    # the renderer's kernels, most of a step, use the cores (_set_threads)
     torch.set_num_threads(1)
     try:
         return _train(data, cfg, resume=resume, progress=progress, log=log, callback=callback)
@@ -785,6 +785,10 @@ def _train(data, cfg, *, resume, progress, log, callback):
     # one LiDAR view per step, alongside the frame (a separate stream: the frame order is unchanged)
     view_order = np.random.default_rng(cfg.seed + 1).integers(0, max(len(views), 1), size=iters)
     lidar_every = max(1, int(cfg.lidar_every))
+    # the geometry steps' tensors are per surfel and per pixel (10^5): torch's ops split them over
+    # the renderer's threads too (tabletop, 2 cores: 65 -> 55 s). A reduction split in two sums in
+    # another order than in one: the map is bit-reproducible for a given thread count
+    torch.set_num_threads(render_threads(cfg))
     for step in range(iters):
         fi = int(order[step])
         fr = low[fi] if step < lowres_steps else frames[fi]
@@ -849,6 +853,7 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if done:
             break
     bar.close()
+    torch.set_num_threads(1)
 
     # final prune of surfels that ended up invisible (opacity faded) or degenerate
     with torch.no_grad():
@@ -924,7 +929,12 @@ def _set_threads(cfg: TrainConfig) -> None:
         return
     from psimap.render import native
 
-    native.set_num_threads(cfg.threads or available_cores())
+    native.set_num_threads(render_threads(cfg))
+
+
+def render_threads(cfg: TrainConfig) -> int:
+    """Threads of the geometry steps: cfg.threads, or every core this process may use."""
+    return int(cfg.threads) if cfg.threads > 0 else available_cores()
 
 
 def available_cores() -> int:
