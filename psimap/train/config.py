@@ -28,9 +28,8 @@ class TrainConfig:
     deterministic: bool = _f(True, "no effect, kept so older manifests and checkpoints load: training is "
                                    "bit-reproducible on any number of threads (the native backward "
                                    "reduces per tile, then per surfel in tile order)")
-    threads: int = _f(0, "threads of the geometry steps: the native renderer's (whose result does "
-                         "not depend on them) and torch's (whose reductions do: the map is the same "
-                         "bits for the same thread count); 0 = every core this process may use")
+    threads: int = _f(0, "native renderer threads (0 = every core this process may use); the "
+                         "result does not depend on them, and torch stays on one thread")
     lowres_until: float = _f(0.3, "fraction of the steps rendered at half resolution (cheap, "
                                   "coarse geometry first)")
     log_every: int = _f(50, "steps between progress-bar / log updates")

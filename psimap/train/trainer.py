@@ -785,10 +785,9 @@ def _train(data, cfg, *, resume, progress, log, callback):
     # one LiDAR view per step, alongside the frame (a separate stream: the frame order is unchanged)
     view_order = np.random.default_rng(cfg.seed + 1).integers(0, max(len(views), 1), size=iters)
     lidar_every = max(1, int(cfg.lidar_every))
-    # the geometry steps' tensors are per surfel and per pixel (10^5): torch's ops split them over
-    # the renderer's threads too (tabletop, 2 cores: 65 -> 55 s). A reduction split in two sums in
-    # another order than in one: the map is bit-reproducible for a given thread count
-    torch.set_num_threads(render_threads(cfg))
+    # torch stays on one thread: on two threads the tabletop's geometry steps took 55 s instead of
+    # 65 s on an idle machine, but 383 s (344 s of CPU) at load 5-7: torch's thousands of small
+    # parallel regions per step spin-wait for a core, where the renderer's few large ones do not
     for step in range(iters):
         fi = int(order[step])
         fr = low[fi] if step < lowres_steps else frames[fi]
@@ -853,7 +852,6 @@ def _train(data, cfg, *, resume, progress, log, callback):
         if done:
             break
     bar.close()
-    torch.set_num_threads(1)
 
     # final prune of surfels that ended up invisible (opacity faded) or degenerate
     with torch.no_grad():
