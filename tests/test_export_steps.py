@@ -150,6 +150,10 @@ def test_decimation_meets_budget_and_budget_controls_faces():
     # a too-tight budget keeps the input
     same = decimate_to_budget(s, 1e-7)
     assert same.faces_after == 5120
+    # the bisection stops once its bracket is within face_tol: fewer probes, a count within it
+    fine = decimate_to_budget(s, 0.0008, face_tol=0.0)
+    assert len(tight.curve) < len(fine.curve)
+    assert fine.faces_after <= tight.faces_after <= 1.15 * fine.faces_after
 
 
 # ---------------------------------------------------------------- collision
