@@ -162,7 +162,7 @@ def same_surface_groups(groups: list[torch.Tensor], cls: list[int], frame: list[
         for b in range(a + 1, g):
             if cls[a] != cls[b] or frame[a] == frame[b]:
                 continue
-            d = max(min(MERGE_DISTANCE, MERGE_REL_DISTANCE * min(size[a], size[b])), gap[a], gap[b])
+            d = min(MERGE_DISTANCE, max(MERGE_REL_DISTANCE * min(size[a], size[b]), gap[a], gap[b]))
             if np.any(lo[a] > hi[b] + d) or np.any(lo[b] > hi[a] + d):     # boxes apart
                 continue
             ab = np.mean(trees[b].query(pts[a], distance_upper_bound=d)[0] <= d)
