@@ -1,0 +1,98 @@
+// Vectors of PSIMAP_LANES floats (GCC / Clang vector extensions) for the pixel kernels: one lane
+// per pixel of a 4x4 block (16 lanes: AVX-512), of half a block (8: AVX2) or of a block row (4:
+// SSE2 / NEON). Included only by raster_lanes.inl, inside an ISA-specific namespace (after
+// <stdint.h>, <string.h> and, on x86, <immintrin.h>): every function here is compiled for that
+// ISA and must never be shared with (linked into) another.
+#pragma once
+
+#ifndef PSIMAP_LANES
+#error "define PSIMAP_LANES (4, 8 or 16) before including simd_lanes.h"
+#endif
+
+#define PSIMAP_LANE_FN static inline __attribute__((always_inline))
+
+constexpr int kLanes = PSIMAP_LANES;
+constexpr int kHalf = kLanes / 2;  // doubles per half vector
+typedef float vf __attribute__((vector_size(4 * kLanes)));
+typedef int32_t vi __attribute__((vector_size(4 * kLanes)));   // masks: -1 (true) / 0
+typedef int32_t vi_half __attribute__((vector_size(2 * kLanes)));
+typedef float vf_half __attribute__((vector_size(2 * kLanes)));
+typedef double vd __attribute__((vector_size(4 * kLanes)));    // kHalf doubles
+typedef int64_t vl __attribute__((vector_size(4 * kLanes)));
+
+PSIMAP_LANE_FN vf splat(float x) { return vf{} + x; }
+PSIMAP_LANE_FN vi splat_i(int32_t x) { return vi{} + x; }
+
+// Bit l set when lane l of the mask is true.
+PSIMAP_LANE_FN unsigned lane_bits(vi m) {
+#if PSIMAP_LANES == 16 && defined(__AVX512F__)
+    return _mm512_cmplt_epi32_mask(reinterpret_cast<__m512i>(m), _mm512_setzero_si512());
+#elif PSIMAP_LANES == 8 && defined(__AVX2__)
+    return static_cast<unsigned>(_mm256_movemask_ps(reinterpret_cast<__m256>(m)));
+#elif PSIMAP_LANES == 4 && defined(__SSE2__)
+    return static_cast<unsigned>(_mm_movemask_ps(reinterpret_cast<__m128>(m)));
+#else
+    unsigned b = 0;
+    for (int l = 0; l < kLanes; ++l) b |= (m[l] != 0 ? 1u : 0u) << l;
+    return b;
+#endif
+}
+PSIMAP_LANE_FN bool any(vi m) { return lane_bits(m) != 0; }
+
+PSIMAP_LANE_FN vf select(vi m, vf a, vf b) { return m ? a : b; }
+PSIMAP_LANE_FN vi select(vi m, vi a, vi b) { return m ? a : b; }
+PSIMAP_LANE_FN vd select(vl m, vd a, vd b) { return m ? a : b; }
+
+// Halves of a lane vector as doubles / 64-bit masks (lanes 0 .. kHalf-1, then the rest).
+PSIMAP_LANE_FN vd lo_d(vf v) {
+    vf_half h;
+    memcpy(&h, &v, sizeof h);
+    return __builtin_convertvector(h, vd);
+}
+PSIMAP_LANE_FN vd hi_d(vf v) {
+    vf_half h;
+    memcpy(&h, reinterpret_cast<const char*>(&v) + sizeof h, sizeof h);
+    return __builtin_convertvector(h, vd);
+}
+PSIMAP_LANE_FN vl lo_mask(vi m) {
+    vi_half h;
+    memcpy(&h, &m, sizeof h);
+    return __builtin_convertvector(h, vl);
+}
+PSIMAP_LANE_FN vl hi_mask(vi m) {
+    vi_half h;
+    memcpy(&h, reinterpret_cast<const char*>(&m) + sizeof h, sizeof h);
+    return __builtin_convertvector(h, vl);
+}
+
+// std::min(a, b) lane by lane: (b < a) ? b : a (the same float decisions as the scalar kernels).
+PSIMAP_LANE_FN vf min_of(vf a, vf b) { return select(b < a, b, a); }
+
+// exp(x) for -6 <= x <= 0: the lanes' twin of exp_nonpositive in surfel_math.h (same steps, same
+// bits); callers pass 0 in the lanes they do not need.
+PSIMAP_LANE_FN vf exp_nonpositive(vf x) {
+    const float round_magic = 12582912.0f;  // 1.5 * 2^23: adding it rounds to an integer
+    const vf t = x * 1.44269504088896341f + round_magic;
+    const vf n = t - round_magic;
+    const vi n_int = reinterpret_cast<vi>(t) - reinterpret_cast<vi>(splat(round_magic));
+    // ln 2 = 0.693359375 (9 bits: n * it is exact) - 2.12194440e-4
+    const vf r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
+    vf p = splat(1.0f / 5040.0f);
+    p = p * r + 1.0f / 720.0f;
+    p = p * r + 1.0f / 120.0f;
+    p = p * r + 1.0f / 24.0f;
+    p = p * r + 1.0f / 6.0f;
+    p = p * r + 0.5f;
+    p = p * r + 1.0f;
+    p = p * r + 1.0f;
+    return p * reinterpret_cast<vf>((n_int + 127) << 23);
+}
+
+// Sum of the lanes, halving pairwise (the same tree for a given lane count).
+PSIMAP_LANE_FN float lane_sum(vf v) {
+    float a[kLanes];
+    memcpy(a, &v, sizeof a);
+    for (int w = kLanes / 2; w >= 1; w /= 2)
+        for (int l = 0; l < w; ++l) a[l] = a[l] + a[l + w];
+    return a[0];
+}
