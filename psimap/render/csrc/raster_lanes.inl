@@ -126,6 +126,32 @@ PSIMAP_LANE_FN void topk_lanes_insert(LaneTopK& top, int K, vi take, vf w, int p
     top.threshold = select(full, mw, splat(-1.0f));
 }
 
+// Sorts every lane's slots by position (bitonic network over the slots, padded to a power of
+// two; empty slots hold position INT32_MAX and sort last): a compare-exchange costs a few vector
+// instructions for all lanes, where sorting each pixel's list alone branches at every step.
+PSIMAP_LANE_FN void topk_lanes_sort(LaneTopK& top, int K) {
+    int padded = 1;
+    while (padded < K) padded *= 2;
+    for (int k = K; k < padded; ++k) {
+        top.pos[k] = splat_i(INT32_MAX);
+        top.w[k] = vf{};
+    }
+    for (int size = 2; size <= padded; size *= 2)
+        for (int stride = size / 2; stride > 0; stride /= 2)
+            for (int i = 0; i < padded; ++i) {
+                const int j = i ^ stride;
+                if (j < i) continue;
+                // ascending pairs where bit `size` of i is clear, descending where it is set
+                const vi swap = (i & size) == 0 ? (top.pos[i] > top.pos[j]) : (top.pos[i] < top.pos[j]);
+                const vi pi = top.pos[i];
+                const vf wi = top.w[i];
+                top.pos[i] = select(swap, top.pos[j], pi);
+                top.w[i] = select(swap, top.w[j], wi);
+                top.pos[j] = select(swap, pi, top.pos[j]);
+                top.w[j] = select(swap, wi, top.w[j]);
+            }
+}
+
 // Forward of one tile: every 4x4 block, kLanes pixels at a time.
 int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& out,
                      const TileWork& work) {
@@ -134,7 +160,6 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
     const double far_d = cfg.far, near_d = cfg.near;
     const SurfelParams* __restrict params = work.params;
     float* __restrict facc = work.scratch;  // [C] lane vectors: full blending of features
-    float* __restrict fsum = work.scratch + static_cast<int64_t>(C) * kLanes;  // [C]: one pixel's Top-K sum
     LaneTopK top;
     int64_t evaluated = 0;
     for (int b = 0; b < kBlocks * kBlocks; ++b) {
@@ -156,6 +181,10 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
                 top.count = vi{};
                 top.evict = vi{};
                 top.threshold = splat(-1.0f);
+                for (int k = 0; k < K; ++k) {
+                    top.pos[k] = splat_i(INT32_MAX);
+                    top.w[k] = vf{};
+                }
             }
             for (int k = 0; k < n_list; ++k) {
                 const int j = list[k];
@@ -217,6 +246,7 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
                 }
                 if (!any(active)) break;
             }
+            if (K > 0) topk_lanes_sort(top, K);
             // Per pixel outputs.
             const vf alpha_out = 1.0f - T_acc;
             const vf depth = select(alpha_out > kAlphaOutMin, depth_num / alpha_out, vf{});
@@ -253,34 +283,34 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
                     for (int c = 0; c < C; ++c) fo[c] = facc[c * kLanes + l];
                     continue;
                 }
-                // Top-K: sum the selected surfels front to back (the order blending visits them).
-                int n_top = top.count[l];
-                int pos[kMaxTopK];
-                float wt[kMaxTopK];
-                for (int a = 0; a < n_top; ++a) {
-                    const int pa = top.pos[a][l];
-                    const float wa = top.w[a][l];
-                    int i = a;
-                    for (; i > 0 && pos[i - 1] > pa; --i) {
-                        pos[i] = pos[i - 1];
-                        wt[i] = wt[i - 1];
-                    }
-                    pos[i] = pa;
-                    wt[i] = wa;
-                }
+                // Top-K: sum the selected surfels front to back (the order blending visits them;
+                // the slots were sorted by position below).
+                const int n_top = top.count[l];
                 int32_t* saved = out.topk_pos + pix * K;
-                for (int a = 0; a < K; ++a) saved[a] = a < n_top ? pos[a] : -1;
+                for (int a = 0; a < K; ++a) saved[a] = a < n_top ? top.pos[a][l] : -1;
                 if (out.topk_w != nullptr) {
                     float* ws = out.topk_w + pix * K;
-                    for (int a = 0; a < K; ++a) ws[a] = a < n_top ? wt[a] : 0.0f;
+                    for (int a = 0; a < K; ++a) ws[a] = a < n_top ? top.w[a][l] : 0.0f;
                 }
-                for (int c = 0; c < C; ++c) fsum[c] = 0.0f;
-                for (int a = 0; a < n_top; ++a) {
-                    const float* __restrict f = in.feature + static_cast<int64_t>(work.ids[pos[a]]) * C;
-                    const float wa = wt[a];
-                    for (int c = 0; c < C; ++c) fsum[c] += wa * f[c];
+                // Channels kLanes at a time in a register (the pixel's rows are read once per
+                // chunk: a tile's few surfels stay in L1), each summed over a = 0 .. n_top - 1.
+                const float* rows[kMaxTopK];
+                for (int a = 0; a < n_top; ++a) rows[a] = in.feature + static_cast<int64_t>(work.ids[top.pos[a][l]]) * C;
+                int c0 = 0;
+                for (; c0 + kLanes <= C; c0 += kLanes) {
+                    vf acc = vf{};
+                    for (int a = 0; a < n_top; ++a) {
+                        vf f;
+                        memcpy(&f, rows[a] + c0, sizeof f);
+                        acc += top.w[a][l] * f;
+                    }
+                    memcpy(fo + c0, &acc, sizeof acc);
                 }
-                for (int c = 0; c < C; ++c) fo[c] = fsum[c];
+                for (int c = c0; c < C; ++c) {
+                    float acc = 0.0f;
+                    for (int a = 0; a < n_top; ++a) acc += top.w[a][l] * rows[a][c];
+                    fo[c] = acc;
+                }
             }
         }
     }

@@ -129,7 +129,7 @@ struct TileWork {
     float* scratch;               // kernel_scratch_floats(C) floats, one buffer per thread
 };
 
-inline int64_t kernel_scratch_floats(int channels) { return static_cast<int64_t>(channels) * 17 + 16; }
+inline int64_t kernel_scratch_floats(int channels) { return static_cast<int64_t>(channels) * 16 + 16; }
 
 // The pixel kernels compiled for one instruction set (raster_isa_*.cpp); every set gives the
 // same forward bits (the lanes are pixels: each makes the per-pixel decisions in the same order).
