@@ -319,7 +319,208 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
 
 }  // namespace
 
-PixelKernels kernels() { return PixelKernels{PSIMAP_ISA_NAME, kLanes, &forward_tile}; }
+// Backward of one tile: every 4x4 block, kLanes pixels at a time, each lane back to front from its
+// last blended surfel (the transmittance rebuilt as T_i = T_{i+1} / (1 - alpha_i) from the same
+// alphas the forward computed). Each lane's gradient terms go to per-lane partial sums per surfel
+// of the tile (work.lane_acc), summed across lanes once per tile into work.grad_rows: a fixed
+// order, so the result does not depend on the threads (it does on the lane count: ulps).
+void backward_tile(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& saved,
+                   const BackwardGrads& g, const TileWork& work) {
+    const int C = in.channels, K = cfg.topk;
+    const float near = cfg.near;
+    const double far_d = cfg.far, near_d = cfg.near;
+    const float* bg = cfg.background;
+    const SurfelParams* __restrict params = work.params;
+    float* __restrict gF = work.scratch;  // [C] lane vectors: dL/dfeature of each lane's pixel
+    vf* __restrict lane_acc = reinterpret_cast<vf*>(work.lane_acc);  // [n][kGradSlots]
+    for (int j = 0; j < work.n; ++j) work.touched[j] = 0;
+    for (int b = 0; b < kBlocks * kBlocks; ++b) {
+        const int bx0 = work.x0 + (b % kBlocks) * kBlockPx, by0 = work.y0 + (b / kBlocks) * kBlockPx;
+        const int32_t* __restrict list = work.block_pos + work.block_start[b];
+        const int n_list = work.block_start[b + 1] - work.block_start[b];
+        for (int group = 0; group < kBlockPx * kBlockPx / kLanes; ++group) {
+            const LanePixels px = lane_pixels(bx0, by0, group, cfg.width, cfg.height);
+            // Per-lane state of the pixel (lanes outside the image, or where nothing blended, idle).
+            float T_fin[kLanes], g_Tf[kLanes], g_num[kLanes], g_r[3][kLanes], g_n[3][kLanes], g_di[kLanes],
+                g_me[kLanes];
+            double A_l[kLanes], D_l[kLanes], D2_l[kLanes];
+            int32_t last_l[kLanes], med_l[kLanes], sel_k[kLanes], next_l[kLanes];
+            int max_last = 0;
+            for (int l = 0; l < kLanes; ++l) {
+                const int64_t pix = px.pix[l];
+                last_l[l] = pix < 0 ? 0 : saved.n_last[pix];
+                max_last = last_l[l] > max_last ? last_l[l] : max_last;
+                if (last_l[l] == 0) {
+                    T_fin[l] = g_Tf[l] = g_num[l] = g_di[l] = g_me[l] = 0.0f;
+                    for (int c = 0; c < 3; ++c) g_r[c][l] = g_n[c][l] = 0.0f;
+                    A_l[l] = D_l[l] = D2_l[l] = 0.0;
+                    med_l[l] = next_l[l] = -1;
+                    sel_k[l] = -1;
+                    for (int c = 0; c < C; ++c) gF[c * kLanes + l] = 0.0f;
+                    continue;
+                }
+                T_fin[l] = saved.t_final[pix];
+                const float alpha_out = 1.0f - T_fin[l];
+                A_l[l] = saved.dist_sums[3 * pix];
+                D_l[l] = saved.dist_sums[3 * pix + 1];
+                D2_l[l] = saved.dist_sums[3 * pix + 2];
+                for (int c = 0; c < 3; ++c) {
+                    g_r[c][l] = g.rgb[3 * pix + c];
+                    g_n[c][l] = g.normal[3 * pix + c];
+                }
+                g_di[l] = g.distortion[pix];
+                g_me[l] = g.median[pix];
+                med_l[l] = saved.median_pos[pix];
+                // alpha_out = 1 - T_final; rgb = ... + T_final bg; depth = num / alpha_out.
+                g_Tf[l] = -g.alpha[pix] + g_r[0][l] * bg[0] + g_r[1][l] * bg[1] + g_r[2][l] * bg[2];
+                g_num[l] = 0.0f;
+                if (alpha_out > kAlphaOutMin) {
+                    g_num[l] = g.depth[pix] / alpha_out;
+                    g_Tf[l] += g.depth[pix] * saved.depth[pix] / alpha_out;
+                }
+                for (int c = 0; c < C; ++c) gF[c * kLanes + l] = g.feature[pix * C + c];
+                // Top-K: the lane's selected positions, walked from the back.
+                int k = K - 1;
+                if (K > 0)
+                    while (k >= 0 && saved.topk_pos[pix * K + k] < 0) --k;
+                sel_k[l] = k;
+                next_l[l] = K > 0 && k >= 0 ? saved.topk_pos[pix * K + k] : -1;
+            }
+            if (max_last == 0) continue;
+            vf T, S, gr[3], gn[3], g_dist, g_med, gnum;
+            vi last, med_pos, next_sel;
+            memcpy(&T, T_fin, sizeof T);
+            memcpy(&S, g_Tf, sizeof S);
+            S = S * T;  // sum_{k > i} dL/dw_k w_k + dL/dT_final T_final
+            for (int c = 0; c < 3; ++c) {
+                memcpy(&gr[c], g_r[c], sizeof(vf));
+                memcpy(&gn[c], g_n[c], sizeof(vf));
+            }
+            memcpy(&g_dist, g_di, sizeof g_dist);
+            memcpy(&g_med, g_me, sizeof g_med);
+            memcpy(&gnum, g_num, sizeof gnum);
+            memcpy(&last, last_l, sizeof last);
+            memcpy(&med_pos, med_l, sizeof med_pos);
+            memcpy(&next_sel, next_l, sizeof next_sel);
+            vd A[2], D[2], D2[2];
+            memcpy(&A[0], A_l, sizeof(vd));
+            memcpy(&A[1], A_l + kHalf, sizeof(vd));
+            memcpy(&D[0], D_l, sizeof(vd));
+            memcpy(&D[1], D_l + kHalf, sizeof(vd));
+            memcpy(&D2[0], D2_l, sizeof(vd));
+            memcpy(&D2[1], D2_l + kHalf, sizeof(vd));
+            const vd g_dist_d[2] = {lo_d(g_dist), hi_d(g_dist)};
+            int k = n_list - 1;
+            while (k >= 0 && list[k] >= max_last) --k;
+            for (; k >= 0; --k) {
+                const int j = list[k];
+                const SurfelParams& s = params[j];
+                const vi in_box = (splat_i(j) < last) & (px.x >= s.x0) & (px.x < s.x1) & (px.y >= s.y0) &
+                                  (px.y < s.y1);
+                if (!any(in_box) || s.half_rho_cut < 0.0f) continue;
+                const LaneHit h = eval_lanes(s, px.x, px.y, in_box, near);
+                if (h.none) continue;
+                const vf oG = s.opacity * h.G;
+                const vf alpha = min_of(splat(kAlphaMax), oG);
+                const vi ok = in_box & (alpha >= kAlphaMin);
+                if (!any(ok)) continue;
+                const vf one_minus = 1.0f - alpha;
+                T = select(ok, T / one_minus, T);
+                const vf w = alpha * T;
+                vi selected = ok;
+                if (K > 0) {
+                    selected = ok & (next_sel == j);
+                    for (unsigned bits = lane_bits(selected); bits != 0; bits &= bits - 1) {
+                        const int l = __builtin_ctz(bits);
+                        const int kk = --sel_k[l];
+                        next_sel[l] = kk >= 0 ? saved.topk_pos[px.pix[l] * K + kk] : -1;
+                    }
+                }
+                // dDist/dw_i = sum_j w_j (m_i - m_j)^2, dDist/dm_i = 2 w_i (m_i A - D), in double.
+                const vd d_half[2] = {lo_d(h.d), hi_d(h.d)}, w_half[2] = {lo_d(w), hi_d(w)};
+                vd dist_w[2], dist_d[2];
+                for (int hf = 0; hf < 2; ++hf) {
+                    const vd dd = d_half[hf];
+                    const vd m = far_d * (dd - near_d) / ((far_d - near_d) * dd);
+                    dist_w[hf] = g_dist_d[hf] * (m * m * A[hf] - 2.0 * m * D[hf] + D2[hf]);
+                    const vd dm_dd = far_d * near_d / ((far_d - near_d) * dd * dd);
+                    dist_d[hf] = g_dist_d[hf] * 2.0 * w_half[hf] * (m * A[hf] - D[hf]) * dm_dd;
+                }
+                vf g_w = gr[0] * s.color[0] + gr[1] * s.color[1] + gr[2] * s.color[2] + gnum * h.d +
+                         gn[0] * s.normal[0] + gn[1] * s.normal[1] + gn[2] * s.normal[2] +
+                         to_float(dist_w[0], dist_w[1]);
+                if (C > 0 && any(selected)) {
+                    const float* __restrict f = in.feature + static_cast<int64_t>(work.ids[j]) * C;
+                    float* __restrict tf = work.grad_feat + static_cast<int64_t>(j) * C;
+                    vf dot = vf{};
+                    for (int c = 0; c < C; ++c) {
+                        vf gf;
+                        memcpy(&gf, gF + c * kLanes, sizeof gf);
+                        dot += gf * f[c];
+                    }
+                    g_w = select(selected, g_w + dot, g_w);
+                    for (unsigned bits = lane_bits(selected); bits != 0; bits &= bits - 1) {
+                        const int l = __builtin_ctz(bits);
+                        const float* __restrict gfl = g.feature + px.pix[l] * C;
+                        const float wl = w[l];
+                        for (int c = 0; c < C; ++c) tf[c] += wl * gfl[c];
+                    }
+                }
+                vf g_d = gnum * w + to_float(dist_d[0], dist_d[1]);
+                g_d = select(med_pos == j, g_d + g_med, g_d);
+                const vf g_alpha = T * g_w - S / one_minus;
+                S = select(ok, S + g_w * w, S);
+                const vi unclamped = ok & (oG <= kAlphaMax);
+                const vf g_G = select(unclamped, g_alpha * s.opacity, vf{});
+                // The kernel's chain (eval_surfel_backward), per branch.
+                const vi b3 = ok & h.use3, b2 = ok & h.use2;
+                const float* Tm = s.T;
+                const vf g_rho2 = -g_G * h.G;
+                const vf g_rho3 = -0.5f * g_G * h.G;
+                const vf g_u = g_rho3 * 2.0f * h.u + g_d * Tm[6];
+                const vf g_v = g_rho3 * 2.0f * h.v + g_d * Tm[7];
+                const vf hx0 = px.x * Tm[6] - Tm[0], hx1 = px.x * Tm[7] - Tm[1], hx2 = px.x * Tm[8] - Tm[2];
+                const vf hy0 = px.y * Tm[6] - Tm[3], hy1 = px.y * Tm[7] - Tm[4], hy2 = px.y * Tm[8] - Tm[5];
+                const vf p2 = hx0 * hy1 - hx1 * hy0;
+                const vf gp0 = g_u / p2;
+                const vf gp1 = g_v / p2;
+                const vf gp2 = -(g_u * h.u + g_v * h.v) / p2;
+                // p = a x b  =>  dL/da = b x g_p, dL/db = g_p x a (a = x T2 - T0, b = y T2 - T1).
+                const vf ga0 = hy1 * gp2 - hy2 * gp1, ga1 = hy2 * gp0 - hy0 * gp2, ga2 = hy0 * gp1 - hy1 * gp0;
+                const vf gb0 = gp1 * hx2 - gp2 * hx1, gb1 = gp2 * hx0 - gp0 * hx2, gb2 = gp0 * hx1 - gp1 * hx0;
+                vf* acc = lane_acc + static_cast<int64_t>(j) * kGradSlots;
+                if (!work.touched[j]) {
+                    work.touched[j] = 1;
+                    for (int q = 0; q < kGradSlots; ++q) acc[q] = vf{};
+                }
+                acc[kGradT + 0] += select(b3, -ga0, vf{});
+                acc[kGradT + 1] += select(b3, -ga1, vf{});
+                acc[kGradT + 2] += select(b3, -ga2, vf{});
+                acc[kGradT + 3] += select(b3, -gb0, vf{});
+                acc[kGradT + 4] += select(b3, -gb1, vf{});
+                acc[kGradT + 5] += select(b3, -gb2, vf{});
+                acc[kGradT + 6] += select(b3, g_d * h.u + (px.x * ga0 + px.y * gb0), vf{});
+                acc[kGradT + 7] += select(b3, g_d * h.v + (px.x * ga1 + px.y * gb1), vf{});
+                acc[kGradT + 8] += select(b3, g_d + (px.x * ga2 + px.y * gb2), vf{});
+                acc[kGradCenter] += select(b2, g_rho2 * -2.0f * (px.x - s.cx), vf{});
+                acc[kGradCenter + 1] += select(b2, g_rho2 * -2.0f * (px.y - s.cy), vf{});
+                acc[kGradDepthKey] += select(b2, g_d, vf{});
+                acc[kGradOpacity] += select(unclamped, g_alpha * h.G, vf{});
+                for (int c = 0; c < 3; ++c) {
+                    acc[kGradNormal + c] += select(ok, w * gn[c], vf{});
+                    acc[kGradColor + c] += select(ok, w * gr[c], vf{});
+                }
+            }
+        }
+    }
+    for (int j = 0; j < work.n; ++j) {
+        float* row = work.grad_rows + static_cast<int64_t>(j) * kGradSlots;
+        const vf* acc = lane_acc + static_cast<int64_t>(j) * kGradSlots;
+        for (int q = 0; q < kGradSlots; ++q) row[q] = work.touched[j] ? lane_sum(acc[q]) : 0.0f;
+    }
+}
+
+PixelKernels kernels() { return PixelKernels{PSIMAP_ISA_NAME, kLanes, &forward_tile, &backward_tile}; }
 
 }  // namespace PSIMAP_ISA_NS
 }  // namespace psimap

@@ -127,7 +127,20 @@ struct TileWork {
     const int32_t* block_pos;     // block lists (block_lists)
     const int32_t* block_start;   // [kBlocks * kBlocks + 1]
     float* scratch;               // kernel_scratch_floats(C) floats, one buffer per thread
+    // Backward only: the tile's gradient rows (kGradSlots floats per surfel, then C), written, and
+    // per-lane partial sums (n x kGradSlots x 16 floats, with `touched` [n] flags), scratch.
+    int n = 0;
+    float* grad_rows = nullptr;
+    float* grad_feat = nullptr;
+    float* lane_acc = nullptr;
+    uint8_t* touched = nullptr;
 };
+
+// Per (tile, surfel) gradient slots besides the features: dL/dT [9], center [2], depth_key,
+// normal_c [3], opacity, color [3].
+constexpr int kGradT = 0, kGradCenter = 9, kGradDepthKey = 11, kGradNormal = 12, kGradOpacity = 15,
+              kGradColor = 16, kGradSlots = 19;
+constexpr int kMaxLanes = 16;
 
 inline int64_t kernel_scratch_floats(int channels) { return static_cast<int64_t>(channels) * 16 + 16; }
 
@@ -138,6 +151,8 @@ struct PixelKernels {
     int lanes;         // pixels per vector
     int64_t (*forward)(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& out,
                        const TileWork& work);  // returns the (pixel, surfel) evaluations
+    void (*backward)(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& saved,
+                     const BackwardGrads& g, const TileWork& work);  // fills work.grad_rows / grad_feat
 };
 
 // The kernels in use: the widest instruction set this CPU runs, unless select_kernels chose one.

@@ -65,6 +65,15 @@ PSIMAP_LANE_FN vl hi_mask(vi m) {
     return __builtin_convertvector(h, vl);
 }
 
+// Two halves of doubles back to one lane vector of floats (each rounded as static_cast<float>).
+PSIMAP_LANE_FN vf to_float(vd lo, vd hi) {
+    const vf_half l = __builtin_convertvector(lo, vf_half), h = __builtin_convertvector(hi, vf_half);
+    vf v;
+    memcpy(&v, &l, sizeof l);
+    memcpy(reinterpret_cast<char*>(&v) + sizeof l, &h, sizeof h);
+    return v;
+}
+
 // std::min(a, b) lane by lane: (b < a) ? b : a (the same float decisions as the scalar kernels).
 PSIMAP_LANE_FN vf min_of(vf a, vf b) { return select(b < a, b, a); }
 
