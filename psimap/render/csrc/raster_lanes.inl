@@ -94,36 +94,28 @@ PSIMAP_LANE_FN LaneHit eval_lanes(const SurfelParams& s, vf x, vf y, vi lanes, f
 }
 
 // Top-K of each lane: the K largest weights so far (ties: the earlier position stays), slot-major
-// [K] vectors; `threshold` is the weight a new surfel must beat (-1 while the list is not full),
-// `evict` the slot it replaces (smallest weight, latest position among equal ones).
+// [K] vectors sorted by weight, largest first (equal weights in position order). A new surfel
+// enters when its weight beats the last slot's (threshold; -1 while the list is not full), which
+// it evicts: the smallest weight, the latest position among equal ones.
 struct LaneTopK {
     vf w[kMaxTopK];
     vi pos[kMaxTopK];
-    vi count, evict;
-    vf threshold;
 };
 
 PSIMAP_LANE_FN void topk_lanes_insert(LaneTopK& top, int K, vi take, vf w, int pos) {
-    const vi full_before = top.count >= K;
-    const vi slot = select(full_before, top.evict, top.count);
-    for (int k = 0; k < K; ++k) {
-        const vi here = take & (slot == k);
-        top.w[k] = select(here, w, top.w[k]);
-        top.pos[k] = select(here, splat_i(pos), top.pos[k]);
+    // Slots k with w > w[k] shift down by one; the first of them takes the new surfel. The
+    // weights are sorted, so w > w[k] holds from some slot on (ties stay in front of it).
+    for (int k = K - 1; k >= 0; --k) {
+        const vi moves = take & (w > top.w[k]);
+        if (k > 0) {
+            const vi from_above = w > top.w[k - 1];
+            top.w[k] = select(moves, select(from_above, top.w[k - 1], w), top.w[k]);
+            top.pos[k] = select(moves, select(from_above, top.pos[k - 1], splat_i(pos)), top.pos[k]);
+        } else {
+            top.w[0] = select(moves, w, top.w[0]);
+            top.pos[0] = select(moves, splat_i(pos), top.pos[0]);
+        }
     }
-    top.count = select(take & ~full_before, top.count + 1, top.count);
-    const vi full = top.count >= K;
-    if (!any(take & full)) return;
-    vf mw = top.w[0];
-    vi mp = top.pos[0], e = vi{};
-    for (int k = 1; k < K; ++k) {
-        const vi smaller = (top.w[k] < mw) | ((top.w[k] == mw) & (top.pos[k] > mp));
-        mw = select(smaller, top.w[k], mw);
-        mp = select(smaller, top.pos[k], mp);
-        e = select(smaller, splat_i(k), e);
-    }
-    top.evict = select(full, e, top.evict);
-    top.threshold = select(full, mw, splat(-1.0f));
 }
 
 // Sorts every lane's slots by position (bitonic network over the slots, padded to a power of
@@ -134,7 +126,7 @@ PSIMAP_LANE_FN void topk_lanes_sort(LaneTopK& top, int K) {
     while (padded < K) padded *= 2;
     for (int k = K; k < padded; ++k) {
         top.pos[k] = splat_i(INT32_MAX);
-        top.w[k] = vf{};
+        top.w[k] = splat(-1.0f);
     }
     for (int size = 2; size <= padded; size *= 2)
         for (int stride = size / 2; stride > 0; stride /= 2)
@@ -178,12 +170,9 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
             if (K == 0)
                 for (int64_t k = 0; k < static_cast<int64_t>(C) * kLanes; ++k) facc[k] = 0.0f;
             if (K > 0) {
-                top.count = vi{};
-                top.evict = vi{};
-                top.threshold = splat(-1.0f);
                 for (int k = 0; k < K; ++k) {
-                    top.pos[k] = splat_i(INT32_MAX);
-                    top.w[k] = vf{};
+                    top.pos[k] = splat_i(INT32_MAX);  // empty: sorts last by position
+                    top.w[k] = splat(-1.0f);          // below any weight (w > 0)
                 }
             }
             for (int k = 0; k < n_list; ++k) {
@@ -230,7 +219,7 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
                         D2[hf] = select(on, D2[hf] + ww * m * m, D2[hf]);
                     }
                     if (K > 0) {
-                        const vi take = blend & (w > top.threshold);
+                        const vi take = blend & (w > top.w[K - 1]);
                         if (any(take)) topk_lanes_insert(top, K, take, w, j);
                     } else if (C > 0) {
                         const float* __restrict f = in.feature + static_cast<int64_t>(work.ids[j]) * C;
@@ -246,7 +235,11 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
                 }
                 if (!any(active)) break;
             }
-            if (K > 0) topk_lanes_sort(top, K);
+            vi top_count = vi{};
+            if (K > 0) {
+                for (int k = 0; k < K; ++k) top_count -= top.w[k] >= 0.0f;  // filled slots
+                topk_lanes_sort(top, K);
+            }
             // Per pixel outputs.
             const vf alpha_out = 1.0f - T_acc;
             const vf depth = select(alpha_out > kAlphaOutMin, depth_num / alpha_out, vf{});
@@ -285,7 +278,7 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
                 }
                 // Top-K: sum the selected surfels front to back (the order blending visits them;
                 // the slots were sorted by position below).
-                const int n_top = top.count[l];
+                const int n_top = top_count[l];
                 int32_t* saved = out.topk_pos + pix * K;
                 for (int a = 0; a < K; ++a) saved[a] = a < n_top ? top.pos[a][l] : -1;
                 if (out.topk_w != nullptr) {
