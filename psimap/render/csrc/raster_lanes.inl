@@ -42,8 +42,9 @@ PSIMAP_LANE_FN LanePixels lane_pixels(int bx0, int by0, int group, int width, in
     return p;
 }
 
-// One surfel at every lane's pixel (SPEC.md stage 3; the scalar definition is eval_surfel in
-// surfel_math.h). `none` is set when no lane can reach alpha >= 1/255.
+// One surfel at every lane's pixel (SPEC.md stage 3): the kernel value G = max(G3, G2) of the
+// ray-splat intersection (u, v) and of the low-pass fallback, and the hit depth d. `none` is set
+// when no lane can reach alpha >= 1/255.
 struct LaneHit {
     vf G, d, u, v;
     vi use3, use2;   // branch of each lane (neither: G = 0)
@@ -63,7 +64,10 @@ PSIMAP_LANE_FN LaneHit eval_lanes(const SurfelParams& s, vf x, vf y, vi lanes, f
     const vf hy_sq = hy0 * hy0 + hy1 * hy1 + hy2 * hy2;
     const vf den = p2 * p2;
     const float lim = s.half_rho_cut < kChi2 / 2.0f ? 2.0f * s.half_rho_cut : kChi2;  // fminf
-    // Edge-on test and the division-free rejection of eval_surfel (same decisions).
+    // |p2| > eps |hx| |hy|, squared (as the reference does), else the surfel is edge-on. Then a
+    // division-free rejection (most evaluations miss the splat): rho3 = |p01|^2 / p2^2 beyond
+    // min(chi^2, 2 cut) by a 1e-4 margin (>> rounding) fails the divided test too: either
+    // rho3 > chi^2, or G3 < 1/(255 o) < G2 whenever the low-pass is tried.
     const vi pass3 = lanes & (den > kEdgeOnEps2 * hx_sq * hy_sq) & (p0 * p0 + p1 * p1 <= lim * den * 1.0001f);
     const vf dx = x - s.cx, dy = y - s.cy;
     const vf rho2 = dx * dx + dy * dy;
@@ -77,7 +81,8 @@ PSIMAP_LANE_FN LaneHit eval_lanes(const SurfelParams& s, vf x, vf y, vi lanes, f
         z3 = T[6] * u + T[7] * v + T[8];
         valid3 = pass3 & (rho3 <= kChi2) & (z3 > near);
     }
-    // Lanes where alpha can reach 1/255 (the exponentials are skipped elsewhere, as in eval_surfel).
+    // Lanes where alpha can reach 1/255; elsewhere G = 0 without the exponentials (the same
+    // decisions as the exact test: half_rho_cut). Ties G3 = G2 go to the 3D branch.
     const vi tried = (valid3 & (0.5f * rho3 <= s.half_rho_cut)) | (valid2 & (rho2 <= s.half_rho_cut));
     if (!any(tried)) return h;
     h.none = false;
@@ -206,7 +211,7 @@ int64_t forward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forw
                     const vi med = blend & (T_acc > 0.5f);
                     median = select(med, h.d, median);
                     median_pos = select(med, splat_i(j), median_pos);
-                    // Distortion in double (ndc_depth_d), both halves of the lanes.
+                    // Distortion (2DGS, one pass) in double on both halves of the lanes, m = NDC depth.
                     const vd d_half[2] = {lo_d(h.d), hi_d(h.d)}, w_half[2] = {lo_d(w), hi_d(w)};
                     const vl m_half[2] = {lo_mask(blend), hi_mask(blend)};
                     for (int hf = 0; hf < 2; ++hf) {
@@ -465,7 +470,9 @@ void backward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forwar
                 S = select(ok, S + g_w * w, S);
                 const vi unclamped = ok & (oG <= kAlphaMax);
                 const vf g_G = select(unclamped, g_alpha * s.opacity, vf{});
-                // The kernel's chain (eval_surfel_backward), per branch.
+                // Chain dL/dG, dL/dd into the surfel's T, centre and depth_key, per branch:
+                // low-pass G2 = exp(-rho2), d = depth_key; 3D G3 = exp(-(u^2 + v^2) / 2),
+                // d = z3 = T[6] u + T[7] v + T[8], (u, v) = (p0, p1) / p2, p = hx x hy.
                 const vi b3 = ok & h.use3, b2 = ok & h.use2;
                 const float* Tm = s.T;
                 const vf g_rho2 = -g_G * h.G;
