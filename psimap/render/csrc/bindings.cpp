@@ -191,6 +191,13 @@ NB_MODULE(_native, m) {
                 throw std::invalid_argument("psimap native: no pixel kernels for '" + isa + "' on this CPU");
         },
         nb::arg("isa"), "Run the pixel kernels built for `isa` ('' = the widest this CPU runs).");
+    m.def(
+        "exp_nonpositive",
+        [](Array<const float>& x, Array<float>& out) {
+            checked(out, x.size(), "out");
+            pixel_kernels().exp(x.data(), out.data(), static_cast<int64_t>(x.size()));
+        },
+        nb::arg("x"), nb::arg("out"), "The pixel kernels' exp (for x in [-6, 0]) into `out` (tests).");
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
     bind_project<float>(m, "f32");

@@ -520,7 +520,21 @@ void backward_tile(const SurfelInputs& in, const RasterConfig& cfg, const Forwar
     }
 }
 
-PixelKernels kernels() { return PixelKernels{PSIMAP_ISA_NAME, kLanes, &forward_tile, &backward_tile}; }
+// exp_nonpositive on n values (kLanes at a time), so the tests can measure its error.
+void exp_values(const float* x, float* out, int64_t n) {
+    for (int64_t i = 0; i < n; i += kLanes) {
+        float a[kLanes] = {};
+        const int64_t m = n - i < kLanes ? n - i : kLanes;
+        for (int64_t l = 0; l < m; ++l) a[l] = x[i + l];
+        vf v;
+        memcpy(&v, a, sizeof v);
+        v = exp_nonpositive(v);
+        memcpy(a, &v, sizeof v);
+        for (int64_t l = 0; l < m; ++l) out[i + l] = a[l];
+    }
+}
+
+PixelKernels kernels() { return PixelKernels{PSIMAP_ISA_NAME, kLanes, &forward_tile, &backward_tile, &exp_values}; }
 
 }  // namespace PSIMAP_ISA_NS
 }  // namespace psimap

@@ -153,6 +153,7 @@ struct PixelKernels {
                        const TileWork& work);  // returns the (pixel, surfel) evaluations
     void (*backward)(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& saved,
                      const BackwardGrads& g, const TileWork& work);  // fills work.grad_rows / grad_feat
+    void (*exp)(const float* x, float* out, int64_t n);  // the kernels' exp_nonpositive, for tests
 };
 
 // The kernels in use: the widest instruction set this CPU runs, unless select_kernels chose one.
