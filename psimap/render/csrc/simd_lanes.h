@@ -43,27 +43,18 @@ PSIMAP_LANE_FN vf select(vi m, vf a, vf b) { return m ? a : b; }
 PSIMAP_LANE_FN vi select(vi m, vi a, vi b) { return m ? a : b; }
 PSIMAP_LANE_FN vd select(vl m, vd a, vd b) { return m ? a : b; }
 
-// Halves of a lane vector as doubles / 64-bit masks (lanes 0 .. kHalf-1, then the rest).
-PSIMAP_LANE_FN vd lo_d(vf v) {
-    vf_half h;
-    memcpy(&h, &v, sizeof h);
-    return __builtin_convertvector(h, vd);
+// Half `upper` of a lane vector (0: lanes 0 .. kHalf-1, 1: the rest), converted lane by lane:
+// floats to doubles, 32-bit masks to 64-bit masks.
+template <typename Out, typename Half, typename In>
+PSIMAP_LANE_FN Out half_of(In v, int upper) {
+    Half h;
+    memcpy(&h, reinterpret_cast<const char*>(&v) + upper * sizeof h, sizeof h);
+    return __builtin_convertvector(h, Out);
 }
-PSIMAP_LANE_FN vd hi_d(vf v) {
-    vf_half h;
-    memcpy(&h, reinterpret_cast<const char*>(&v) + sizeof h, sizeof h);
-    return __builtin_convertvector(h, vd);
-}
-PSIMAP_LANE_FN vl lo_mask(vi m) {
-    vi_half h;
-    memcpy(&h, &m, sizeof h);
-    return __builtin_convertvector(h, vl);
-}
-PSIMAP_LANE_FN vl hi_mask(vi m) {
-    vi_half h;
-    memcpy(&h, reinterpret_cast<const char*>(&m) + sizeof h, sizeof h);
-    return __builtin_convertvector(h, vl);
-}
+PSIMAP_LANE_FN vd lo_d(vf v) { return half_of<vd, vf_half>(v, 0); }
+PSIMAP_LANE_FN vd hi_d(vf v) { return half_of<vd, vf_half>(v, 1); }
+PSIMAP_LANE_FN vl lo_mask(vi m) { return half_of<vl, vi_half>(m, 0); }
+PSIMAP_LANE_FN vl hi_mask(vi m) { return half_of<vl, vi_half>(m, 1); }
 
 // Two halves of doubles back to one lane vector of floats (each rounded as static_cast<float>).
 PSIMAP_LANE_FN vf to_float(vd lo, vd hi) {
