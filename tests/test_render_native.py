@@ -459,3 +459,27 @@ def test_kernel_exp_is_within_one_ulp_of_float64_on_every_instruction_set():
         assert float(rel.max()) <= 1.8e-7, (isa, float(rel.max()), float(x[rel.argmax()]))
         assert np.array_equal(out, outs["baseline"]), isa
     assert outs["baseline"][-3] == 1.0
+
+
+@pytest.mark.parametrize("topk", [None, 3])
+def test_image_edges_through_partial_blocks_are_a_crop_of_a_larger_render(topk):
+    """61x45 pixels end inside 4x4 blocks (idle lanes): every pixel is written and equals the same
+    pixel of a 64x48 render (a pixel's value depends on its coordinates and the surfels only),
+    and the gradients flow from the edge pixels."""
+    seed = fresh_seed()
+    viewmat, K = camera()
+    m, q, s, o, c, f = [t.float() for t in random_scene(150, seed)]
+    big = rasterize(m, q, s, o, c, viewmat.float(), K.float(), W, H, features=f, topk=topk, backend="native")
+    leaves = [t.clone().requires_grad_(True) for t in (m, q, s, o, c, f)]
+    small = rasterize(*leaves[:5], viewmat.float(), K.float(), W - 3, H - 3, features=leaves[5], topk=topk,
+                      backend="native")
+    for k in OUTPUTS:
+        a, b = getattr(small, k).detach(), getattr(big, k)[: H - 3, : W - 3]
+        assert bool(torch.isfinite(a).all()), (k, seed)
+        assert torch.equal(a, b), (k, seed)
+    alpha = small.alpha.detach()
+    assert float(alpha[:, -1].max()) > 0.3 and float(alpha[-1].max()) > 0.3, seed
+    # the last column and row alone (blocks whose other lanes are outside the image)
+    loss = small.rgb[:, -1].sum() + small.rgb[-1].sum()
+    g = torch.autograd.grad(loss, leaves[0])[0]
+    assert float(g.abs().max()) > 1e-3, seed
