@@ -33,6 +33,12 @@ def get_num_threads() -> int:
     return int(_native.get_num_threads())
 
 
+def pixel_kernels() -> str:
+    """Instruction set of the SIMD pixel kernels in use: "avx512" (16 pixels per vector), "avx2" (8)
+    or "baseline" (4: SSE2 / NEON); the widest this CPU runs, chosen at import (docs/renderer.md)."""
+    return str(_native.pixel_kernels())
+
+
 def _empty(shape, dtype=np.float32) -> np.ndarray:
     if POISON_OUTPUTS:
         if np.issubdtype(dtype, np.integer):

@@ -5,7 +5,9 @@
 
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
+#include <nanobind/stl/string.h>
 #include <nanobind/stl/tuple.h>
+#include <nanobind/stl/vector.h>
 #include <omp.h>
 
 #include "threads.h"
@@ -180,6 +182,24 @@ NB_MODULE(_native, m) {
 
     m.def("set_num_threads", [](int n) { set_kernel_threads(n); }, nb::arg("n"));
     m.def("get_num_threads", []() { return kernel_threads(); });
+    m.def("pixel_kernels", []() { return std::string(pixel_kernels().isa); },
+          "Instruction set of the SIMD pixel kernels in use (avx512, avx2 or baseline).");
+    m.def("available_pixel_kernels", []() { return available_kernels(); },
+          "Instruction sets of the pixel kernels this CPU can run, widest first.");
+    m.def(
+        "use_pixel_kernels",
+        [](const std::string& isa) {
+            if (!select_kernels(isa))
+                throw std::invalid_argument("psimap native: no pixel kernels for '" + isa + "' on this CPU");
+        },
+        nb::arg("isa"), "Run the pixel kernels built for `isa` ('' = the widest this CPU runs).");
+    m.def(
+        "exp_nonpositive",
+        [](Array<const float>& x, Array<float>& out) {
+            checked(out, x.size(), "out");
+            pixel_kernels().exp(x.data(), out.data(), static_cast<int64_t>(x.size()));
+        },
+        nb::arg("x"), nb::arg("out"), "The pixel kernels' exp (for x in [-6, 0]) into `out` (tests).");
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
     bind_project<float>(m, "f32");

@@ -173,23 +173,41 @@ void gather_tile(const SurfelInputs& in, const TileBins& bins, int t,
 
 void block_lists(const std::vector<SurfelParams>& params, int tile_x0, int tile_y0,
                  std::vector<int32_t>& pos, int32_t* starts, const std::vector<Footprint>* footprints) {
-    pos.clear();
+    constexpr int kBlockCount = kBlocks * kBlocks;
     const int n = static_cast<int>(params.size());
-    for (int b = 0; b < kBlocks * kBlocks; ++b) {
-        starts[b] = static_cast<int32_t>(pos.size());
-        const int bx0 = tile_x0 + (b % kBlocks) * kBlockPx, by0 = tile_y0 + (b / kBlocks) * kBlockPx;
-        const float fx0 = static_cast<float>(bx0), fy0 = static_cast<float>(by0);
-        const float fx1 = fx0 + kBlockPx, fy1 = fy0 + kBlockPx;
-        for (int j = 0; j < n; ++j) {
-            const SurfelParams& s = params[j];
-            if (!(s.x0 < fx1 && s.x1 > fx0 && s.y0 < fy1 && s.y1 > fy0)) continue;
-            // Pixel centres of the block: bx0 .. bx0 + kBlockPx - 1 (and y alike).
-            if (footprints && !meets((*footprints)[j], bx0, by0, bx0 + kBlockPx - 1, by0 + kBlockPx - 1))
-                continue;
-            pos.push_back(j);
-        }
+    // Each surfel visits only the blocks its box overlaps (a range of block rows and columns),
+    // appending itself to their lists in surfel order; the lists are then packed block by block.
+    // Same lists as testing every (block, surfel) pair, without a hard-to-predict branch each.
+    pos.resize(static_cast<size_t>(kBlockCount + 1) * n);
+    int32_t* per_block = pos.data() + n;  // block b's list at per_block[b * n ...]
+    int32_t count[kBlockCount] = {0};
+    for (int j = 0; j < n; ++j) {
+        const SurfelParams& s = params[j];
+        // The box is integer-valued (half-open): block column bx overlaps it when
+        // x0 < tile_x0 + 4 (bx + 1) and x1 > tile_x0 + 4 bx.
+        const int x0 = static_cast<int>(s.x0) - tile_x0, x1 = static_cast<int>(s.x1) - tile_x0;
+        const int y0 = static_cast<int>(s.y0) - tile_y0, y1 = static_cast<int>(s.y1) - tile_y0;
+        const int bx0 = x0 < 0 ? 0 : x0 >> 2, bx1 = std::min(kBlocks - 1, ((x1 + kBlockPx - 1) >> 2) - 1);
+        const int by0 = y0 < 0 ? 0 : y0 >> 2, by1 = std::min(kBlocks - 1, ((y1 + kBlockPx - 1) >> 2) - 1);
+        for (int by = by0; by <= by1; ++by)
+            for (int bx = bx0; bx <= bx1; ++bx) {
+                // Pixel centres of the block: its first pixel .. + kBlockPx - 1 (x and y).
+                const int px0 = tile_x0 + bx * kBlockPx, py0 = tile_y0 + by * kBlockPx;
+                if (footprints && !meets((*footprints)[j], px0, py0, px0 + kBlockPx - 1, py0 + kBlockPx - 1))
+                    continue;
+                const int b = by * kBlocks + bx;
+                per_block[static_cast<int64_t>(b) * n + count[b]++] = j;
+            }
     }
-    starts[kBlocks * kBlocks] = static_cast<int32_t>(pos.size());
+    int32_t total = 0;
+    for (int b = 0; b < kBlockCount; ++b) {
+        starts[b] = total;
+        // Packed in place: block b's list moves down to pos[total ...], never past its source.
+        std::copy(per_block + static_cast<int64_t>(b) * n, per_block + static_cast<int64_t>(b) * n + count[b],
+                  pos.data() + total);
+        total += count[b];
+    }
+    starts[kBlockCount] = total;
 }
 
 }  // namespace psimap

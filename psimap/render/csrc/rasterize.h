@@ -2,6 +2,7 @@
 #pragma once
 
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "surfel_math.h"
@@ -117,5 +118,49 @@ void block_lists(const std::vector<SurfelParams>& params, int tile_x0, int tile_
 inline int block_of(int px, int py, int tile_x0, int tile_y0) {
     return ((py - tile_y0) / kBlockPx) * kBlocks + (px - tile_x0) / kBlockPx;
 }
+
+// One tile's pixel work, handed to the SIMD pixel kernels (raster_lanes.inl).
+struct TileWork {
+    int x0, y0;                   // the tile's first pixel
+    const SurfelParams* params;   // the tile's surfels, front to back (gather_tile)
+    const int32_t* ids;           // their surfel indices (bins.ids + offsets[t])
+    const int32_t* block_pos;     // block lists (block_lists)
+    const int32_t* block_start;   // [kBlocks * kBlocks + 1]
+    float* scratch;               // kernel_scratch_floats(C) floats, one buffer per thread
+    // Backward only: the tile's gradient rows (kGradSlots floats per surfel, then C), written, and
+    // per-lane partial sums (n x kGradSlots x 16 floats, with `touched` [n] flags), scratch.
+    int n = 0;
+    float* grad_rows = nullptr;
+    float* grad_feat = nullptr;
+    float* lane_acc = nullptr;
+    uint8_t* touched = nullptr;
+};
+
+// Per (tile, surfel) gradient slots besides the features: dL/dT [9], center [2], depth_key,
+// normal_c [3], opacity, color [3].
+constexpr int kGradT = 0, kGradCenter = 9, kGradDepthKey = 11, kGradNormal = 12, kGradOpacity = 15,
+              kGradColor = 16, kGradSlots = 19;
+constexpr int kMaxLanes = 16;
+
+inline int64_t kernel_scratch_floats(int channels) { return static_cast<int64_t>(channels) * 16 + 16; }
+
+// The pixel kernels compiled for one instruction set (raster_isa_*.cpp); every set gives the
+// same forward bits (the lanes are pixels: each makes the per-pixel decisions in the same order).
+struct PixelKernels {
+    const char* isa;   // "avx512", "avx2", "baseline"
+    int lanes;         // pixels per vector
+    int64_t (*forward)(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& out,
+                       const TileWork& work);  // returns the (pixel, surfel) evaluations
+    void (*backward)(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& saved,
+                     const BackwardGrads& g, const TileWork& work);  // fills work.grad_rows / grad_feat
+    void (*exp)(const float* x, float* out, int64_t n);  // the kernels' exp_nonpositive, for tests
+};
+
+// The kernels in use: the widest instruction set this CPU runs, unless select_kernels chose one.
+const PixelKernels& pixel_kernels();
+// Names of the instruction sets built into the module that this CPU can run, widest first.
+std::vector<std::string> available_kernels();
+// Use the named set ("" = the widest available); false when it is not available.
+bool select_kernels(const std::string& isa);
 
 }  // namespace psimap
