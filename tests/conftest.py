@@ -1,4 +1,6 @@
 """Suite-wide settings and shared fixtures."""
+import psimap  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads libgomp)
+
 import numpy as np
 import pytest
 import torch

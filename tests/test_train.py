@@ -439,3 +439,19 @@ def test_prior_noise_with_non_finite_depth(scene_frames):
         bad.append(Frame(rgb=f.rgb, depth=d, K=f.K, c2w=f.c2w, name=f.name))
     scene = train(sequence(bad), cfg(iters=4), log=lambda m: None)
     assert scene.metrics["sogmm_K"] > 0 and torch.isfinite(scene.surfels["means"]).all()
+
+
+def test_openmp_threads_wait_passively_unless_the_user_says():
+    """`import psimap` before torch makes OpenMP's idle threads sleep (spinning ones took a core
+    from the other thread on a busy 2-core machine); a policy the user set is kept."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import psimap, os, torch; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.stdout.split() == ["PASSIVE"], out.stderr[-500:]
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_WAIT_POLICY": "active"},
+                         capture_output=True, text=True, timeout=120)
+    assert out.stdout.split() == ["active"], out.stderr[-500:]
