@@ -26,8 +26,10 @@ def backward_if_finite(terms: dict, params: dict) -> str | None:
     if bad is not None:
         return f"loss term '{bad}'"
     sum(terms.values()).backward()
+    # a NaN or inf anywhere makes the sum NaN or inf: one pass, no [N, ...] bool temporary (a
+    # finite gradient whose sum overflows float32, |sum| > 3e38, is refused too)
     return next((f"gradient of {name}" for name, p in params.items()
-                 if p.grad is not None and not bool(torch.isfinite(p.grad).all())), None)
+                 if p.grad is not None and not bool(torch.isfinite(p.grad.sum()))), None)
 
 
 class NonFiniteGuard:

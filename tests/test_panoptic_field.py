@@ -309,8 +309,8 @@ def test_one_query_per_object_seen_in_several_frames():
 
     s, frames, _ = _two_box_scene(n_frames=6)
     views = [view_of(f) for f in frames]
-    merged = init_queries(views, CLASSES, PanopticConfig(init_frames=6), scene_scale=1.2)
-    apart = init_queries(views, CLASSES, PanopticConfig(init_frames=6, init_merge=0.0), scene_scale=1.2)
+    merged = init_queries(views, CLASSES, PanopticConfig(init_frames=6, init_merge=0.5), scene_scale=1.2)
+    apart = init_queries(views, CLASSES, PanopticConfig(init_frames=6), scene_scale=1.2)     # the default
     # 48 x 36 views, 4 cm pixels: neighbouring views of a box join, opposite sides stay apart
     assert apart.count == 12 and 2 <= merged.count <= 9
     # no query joins the two boxes: each sits on one (box centres at x = -0.35 and 0.35)
