@@ -199,9 +199,9 @@ def segment_change(prev: torch.Tensor, now: torch.Tensor, min_size: int) -> floa
 # A stuff class segment has settled when fewer than this share of its surfels changed class over a
 # period (classes too small to be kept, PanopticConfig.min_stuff_share, do not count)
 SETTLE_CLASS_TOL = 0.05
-# Settled periods in a row before the steps end: a query the useless / duplicate rules would drop
-# next period can sit through one calm period (tabletop, one of three view orders: 6 instances
-# for 5 objects when stopping after the first)
+# Settled periods in a row before the steps end: a query the useless / duplicate rules drop later
+# can sit through one calm period (tabletop with merged initial queries, one of three view orders:
+# 6 instances for 5 objects when stopping after the first calm period)
 SETTLE_PERIODS = 2
 
 
