@@ -24,6 +24,7 @@ from psimap.data.frames import DepthSized
 from psimap.nonfinite import NonFiniteGuard, backward_if_finite
 from psimap.panoptic.config import PanopticConfig
 from psimap.panoptic.field import PanopticField, init_queries
+from psimap.render.api import project
 
 
 @dataclass
@@ -68,25 +69,14 @@ class JointGeometry:
     optimizer: torch.optim.Optimizer
 
 
-def _project(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
-    """Stage 1 of the renderer, native when it is built (no gradients needed here)."""
-    from psimap.render.api import native_available
-
-    if native_available() and means.device.type == "cpu":
-        from psimap.render.native import project_surfels
-    else:
-        from psimap.render.project import project_surfels
-    return project_surfels(means, quats, scales, opacities, w2c.to(means.dtype), K.to(means.dtype),
-                           width, height, near, far)
-
-
 def visible_surfels(means, quats, scales, opacities, w2c, K, width, height, near=0.2, far=1000.0):
     """Indices [V] of surfels whose 3-sigma footprint touches the image (the frustum-local set).
 
     means [N, 3], quats [N, 4] unit, scales [N, 2], opacities [N]; near / far: the renderer's
     default clip planes."""
     with torch.no_grad():
-        p = _project(means, quats, scales, opacities, w2c, K, width, height, near, far)
+        p = project(means, quats, scales, opacities, w2c.to(means.dtype), K.to(means.dtype), width, height,
+                    near, far)
         box = p.box_precise
         hit = p.valid & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
     return torch.nonzero(hit).flatten()
@@ -156,7 +146,8 @@ def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height
         return None
     with torch.no_grad():
         idx = visible
-        p = _project(means[idx], quats[idx], scales[idx], opacities[idx], w2c, K, width, height, near, far)
+        p = project(means[idx], quats[idx], scales[idx], opacities[idx], w2c.to(means.dtype),
+                    K.to(means.dtype), width, height, near, far)
         ids, w, alpha = topk_weights(p, opacities[idx].float(), width, height, int(topk), near=near, far=far)
     ids, w = ids.reshape(-1, ids.shape[-1]), w.reshape(-1, w.shape[-1])
     keep = ids >= 0

@@ -36,6 +36,20 @@ def native_available() -> bool:
     return True
 
 
+def project(means, quats, scales, opacities, viewmat, K, width: int, height: int, near: float = 0.2,
+            far: float = 1000.0):
+    """Stage 1 (psimap.render.project.Projected): the native projection where it is built, the
+    tensors are on the CPU and the camera needs no gradient (it has none: a pose being optimised
+    needs the torch projection, psimap.render.project.project_surfels, used otherwise)."""
+    from psimap.render.project import project_surfels
+
+    if means.device.type == "cpu" and not (viewmat.requires_grad or K.requires_grad) and native_available():
+        from psimap.render.native import project_surfels as project_native
+
+        return project_native(means, quats, scales, opacities, viewmat, K, width, height, near, far)
+    return project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
+
+
 def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
               features=None, topk: int | None = None, tiles: str = "precise",
               backend: str = "reference", near: float = 0.2, far: float = 1000.0,
@@ -88,14 +102,11 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
     use_native = backend == "native" or (backend == "auto" and device.type == "cpu" and native_available())
     if use_native:
         try:
-            from psimap.render.native import project_surfels as project_native, rasterize_native
+            from psimap.render.native import rasterize_native
         except Exception as exc:   # an unbuilt extension is the user's setup, not a bug
             raise PsimapError(f"native renderer backend is not available ({exc}); "
                               f"reinstall psimap to build it, or use backend='reference'") from exc
-        # Camera gradients (a pose being optimised) exist only in the torch projection.
-        native_stage1 = device.type == "cpu" and not (viewmat.requires_grad or K.requires_grad)
-        proj = (project_native if native_stage1 else project_surfels)(
-            means, quats, scales, opacities, viewmat, K, width, height, near, far)
+        proj = project(means, quats, scales, opacities, viewmat, K, width, height, near, far)
         return rasterize_native(proj, opacities, colors, features, width, height, topk, tiles,
                                 near, far, background)
     from psimap.render.reference import rasterize_reference
