@@ -579,3 +579,105 @@ def test_rarely_matched_query_is_useless_by_default():
     f.visible = torch.tensor([154.0, 53.0])
     assert f.adjust(means) == 1
     assert torch.allclose(f.queries.mean.detach()[0], torch.full((3,), -1.0))
+
+
+def test_seen_on_sampled_pixels_scales_the_mask_size():
+    """A frame larger than pixels_per_step is read at a sample of its pixels (a frozen blend renders
+    only those): "seen" then asks for the sample's share of min_mask_fraction, so a query owning 4x
+    the smallest mask is seen and one owning half of it is not, as on the whole frame."""
+    from types import SimpleNamespace
+
+    from psimap.data.frames import ClassInfo
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
+
+    h, w = 40, 60                                     # 2400 px, 600 sampled, smallest mask 120 px
+    K = torch.tensor([[30.0, 0, 30], [0, 30.0, 20], [0, 0, 1]])
+    feat, mean, cov = init_from_points([torch.randn(30, 3) * 0.05, torch.randn(30, 3) * 0.05 + 5.0], 4)
+    cfg = PanopticConfig(feat_dim=4, spawn=False, pixels_per_step=600, min_mask_fraction=0.05)
+    field = PanopticField(5, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov), cfg)
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[5:25, 5:30] = 7                              # 500 px
+
+    def render(idx, feats, topk):
+        img = torch.zeros(h, w, feats.shape[1])
+        img[5:25, 5:30, 0] = 0.9                      # query 0 owns the box
+        img[30:36, 40:50, 1] = 0.9                    # query 1 owns 60 px elsewhere
+        return SimpleNamespace(features=img + feats.sum() * 0, alpha=torch.ones(h, w))
+
+    g = torch.Generator().manual_seed(0)
+    for _ in range(4):
+        field.losses(render, torch.zeros(5, 3), torch.arange(5), inst, torch.where(inst > 0, 1, 0),
+                     K, torch.eye(4), w, h, generator=g)
+    assert field.visible.tolist() == [4.0, 0.0]
+    assert field.matched.tolist() == [4.0, 0.0]
+
+
+def test_match_costs_equal_the_readable_dice_and_bce_costs():
+    """hungarian_match's one-product costs (match_costs, over the windows' pixels only) equal
+    dice_cost / bce_cost and the ring means written out, with windows and without."""
+    from psimap.panoptic.matching import bce_cost, dice_cost, mask_windows, match_costs
+
+    g = torch.Generator().manual_seed(3)
+    h, w = 30, 40
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[2:8, 3:9] = 1
+    inst[20:24, 30:33] = 2
+    inst[10:14, 12:30] = 3
+    masks, _ = masks_from_ids(inst)
+    t = masks.flatten(1).float()
+    win = torch.maximum(mask_windows(masks).flatten(1).float(), t)
+    assert float(win.any(0).float().mean()) < 0.8            # some pixels lie in no window
+    p = torch.rand(5, h * w, generator=g).clamp(1e-6, 1 - 1e-6)
+    full = match_costs(p, t)
+    torch.testing.assert_close(full["dice"], dice_cost(p, t), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(full["bce"], bce_cost(torch.logit(p), t), rtol=1e-5, atol=1e-5)
+    local = match_costs(p, t, win)
+    torch.testing.assert_close(local["dice"], dice_cost(p, t, window=win), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(local["bce"], bce_cost(torch.logit(p), t, window=win), rtol=1e-5, atol=1e-5)
+    inter = p @ t.T
+    ring = (p @ win.T - inter) / (win - t).sum(-1).unsqueeze(0)
+    torch.testing.assert_close(local["on_mask"], inter / t.sum(-1).unsqueeze(0), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(local["on_ring"], ring, rtol=1e-5, atol=1e-6)
+
+
+def test_mahalanobis_product_form_matches_the_readable_one_far_from_small_queries():
+    """mahalanobis2 (quadratic monomials x coefficients, float64) gives the per-query triangular
+    solve's values and gradients, for 1 cm queries seen from 6 m away as for near points."""
+    g = torch.Generator().manual_seed(1)
+    q = 6
+    size = torch.tensor([0.01, 0.01, 0.01, 0.3, 0.3, 0.3]).view(q, 1, 1)     # three 1 cm queries
+    a = torch.randn(q, 3, 3, generator=g) * size
+    cov = a @ a.transpose(-1, -2) + 1e-6 * torch.eye(3)
+    mean = torch.randn(q, 3, generator=g) + torch.tensor([5.0, -2.0, 1.0])
+    queries = InstanceQueries(torch.randn(q, 8, generator=g), mean, cov)
+    near = mean[torch.randint(0, q, (200,), generator=g)] + 0.02 * torch.randn(200, 3, generator=g)
+    far = torch.randn(300, 3, generator=g) * 2.0 - 1.0
+    pts = torch.cat([near, far])
+    fast, slow = queries.mahalanobis2(pts), queries.mahalanobis2_reference(pts)
+    small = slow < 50                                          # where exp(-m^2 / 2) is not ~0
+    assert int(small.sum()) > 100
+    torch.testing.assert_close(fast[small], slow[small], rtol=1e-4, atol=1e-4)
+    assert bool((fast[~small] > 45).all())
+    params = [queries.mean, queries.log_diag, queries.offdiag]
+    w = torch.exp(-0.5 * slow.detach())                        # weigh the pairs the affinity reads
+    g_fast = torch.autograd.grad((fast * w).sum(), params)
+    g_slow = torch.autograd.grad((queries.mahalanobis2_reference(pts) * w).sum(), params)
+    for x, y in zip(g_fast, g_slow):
+        torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-3 * float(y.abs().max()))
+
+
+@pytest.mark.parametrize("cols", [3, 11, 15, 16, 40])
+def test_softmax_last_is_the_softmax_over_the_last_dim(cols):
+    from psimap.panoptic.queries import softmax_last
+
+    g = torch.Generator().manual_seed(cols)
+    x = (torch.randn(257, cols, generator=g) * 4).requires_grad_(True)
+    up = torch.randn(257, cols, generator=g)
+    for log, ref in ((False, torch.softmax), (True, torch.log_softmax)):
+        a = softmax_last(x, log=log)
+        b = ref(x, -1)
+        torch.testing.assert_close(a, b)
+        ga, = torch.autograd.grad((a * up).sum(), x)
+        gb, = torch.autograd.grad((b * up).sum(), x)
+        torch.testing.assert_close(ga, gb)

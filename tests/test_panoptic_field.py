@@ -333,3 +333,43 @@ def test_one_query_per_object_seen_in_several_frames():
     # same frame or another class: never joined
     assert len(set(same_surface_groups([big, big.clone()], [0, 0], [0, 0], 0.5).tolist())) == 2
     assert len(set(same_surface_groups([big, big.clone()], [0, 1], [0, 1], 0.5).tolist())) == 2
+
+
+def test_frozen_blend_renders_the_pixels_asked_for_as_the_renderer_does():
+    """A frozen view's render at a few pixel rows (what a step on a frame larger than
+    pixels_per_step reads) equals the Top-K rasterization at those pixels, and its gradient equals
+    the gradient of the rasterized features read at the same pixels."""
+    from psimap.panoptic.fit import frozen_blend, visible_surfels, view_of
+    from psimap.render.api import native_available
+
+    if not native_available():
+        pytest.skip("the frozen blend needs the native renderer")
+    s, frames, _ = _two_box_scene(n_frames=3)
+    v = view_of(frames[1])
+    geo = (s["means"], s["quats"], s["scales"], s["opacities"])
+    vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
+    blend = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, topk=4)
+    assert blend is not None and 0 < blend.visible.numel() <= vis.numel()
+    g = torch.Generator().manual_seed(0)
+    feats = torch.randn(s["means"].shape[0], 5, generator=g)
+    rows = torch.randperm(v.width * v.height, generator=g)[:300]
+    f_blend = feats[blend.visible].clone().requires_grad_(True)
+    got, alpha = blend.render(f_blend).at(rows)
+    f_all = feats[vis].clone().requires_grad_(True)
+    ref = rasterize(*(t[vis] for t in geo), torch.zeros(vis.numel(), 3), v.viewmat, v.K, v.width, v.height,
+                    features=f_all, topk=4, backend="auto")
+    want = ref.features.reshape(-1, 5)[rows]
+    assert float(ref.alpha.detach().reshape(-1)[rows].max()) > 0.5
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(alpha, ref.alpha.reshape(-1)[rows], rtol=1e-5, atol=1e-6)
+    full, _ = blend.render(f_blend.detach()).at(None)
+    torch.testing.assert_close(full[rows], got.detach())
+    up = torch.randn(300, 5, generator=g)
+    (g_blend,) = torch.autograd.grad((got * up).sum(), f_blend)
+    (g_ref,) = torch.autograd.grad((want * up).sum(), f_all)
+    # the surfels no pixel blends get no gradient from the rasterizer either
+    pos = torch.searchsorted(vis, blend.visible)
+    torch.testing.assert_close(g_blend, g_ref[pos], rtol=1e-4, atol=1e-5)
+    hidden = torch.ones(vis.numel(), dtype=torch.bool)
+    hidden[pos] = False
+    assert float(g_ref[hidden].abs().sum()) == 0.0

@@ -83,50 +83,63 @@ def visible_surfels(means, quats, scales, opacities, w2c, K, width, height, near
 
 
 # Frozen geometry blends the same surfels with the same weights at every step: each view's Top-K
-# feature render is then one sparse matrix, kept while they fit this many bytes (8 slots x 12 bytes
-# per pixel: ~7 MB for a 320x240 view); the other views are rasterized each step as before.
+# feature render is then one sparse matrix, kept while they fit this many bytes (up to 8 slots x 12
+# bytes per pixel: ~7 MB for a 320x240 view); the other views are rasterized each step as before.
 BLEND_CACHE_BYTES = 1 << 30
 
 
-@dataclass
-class BlendedView:
-    """What PanopticField.losses reads of a render: features [H, W, C], alpha [H, W]."""
-
-    features: torch.Tensor
-    alpha: torch.Tensor
-
-
-class _SparseBlend(torch.autograd.Function):
-    """features [P, C] = A [P, V] @ f [V, C]; the backward multiplies by the stored transpose."""
+class _RowBlend(torch.autograd.Function):
+    """features [R, C] = A [R, V] @ f [V, C] with A a scipy CSR matrix; the backward multiplies by
+    its transpose (CSC: no transposed copy is built). scipy's products run ~2x torch's sparse CSR
+    ones here, and a CSR's row selection is a cheap slice."""
 
     @staticmethod
-    def forward(ctx, f, A, At):
-        ctx.At = At
-        return A @ f
+    def forward(ctx, f, A):
+        ctx.A = A
+        return torch.from_numpy(A @ f.detach().contiguous().numpy())
 
     @staticmethod
     def backward(ctx, v_features):
-        return ctx.At @ v_features, None, None
+        return torch.from_numpy(np.ascontiguousarray(ctx.A.T @ v_features.contiguous().numpy())), None
 
 
 @dataclass
 class FrozenBlend:
     """One view's Top-K feature blending on frozen geometry: rendered features = A @ f for per-surfel
     features f [V, C] of the surfels `visible` [V] that some pixel's Top-K blends (the others of the
-    frustum are hidden: they receive no gradient and are left out of the step). A [H*W, V] and its
-    transpose At are CSR."""
+    frustum are hidden: they receive no gradient and are left out of the step). A [H*W, V] is a
+    float32 scipy CSR matrix, alpha [H, W]."""
 
-    A: torch.Tensor
-    At: torch.Tensor
-    alpha: torch.Tensor          # [H, W]
+    A: object
+    alpha: torch.Tensor
     visible: torch.Tensor        # [V] long surfel indices
     nbytes: int
 
-    def render(self, feats: torch.Tensor) -> BlendedView:
-        """feats [V, C] -> BlendedView (differentiable in feats)."""
-        h, w = self.alpha.shape
-        out = _SparseBlend.apply(feats, self.A, self.At)
-        return BlendedView(features=out.reshape(h, w, -1), alpha=self.alpha)
+    def render(self, feats: torch.Tensor) -> "BlendedPixels":
+        """feats [V, C] -> the view's render, evaluated at the pixels asked for (differentiable in feats)."""
+        return BlendedPixels(self, feats)
+
+
+@dataclass
+class BlendedPixels:
+    """A frozen blend's render of features [V, C]: `at(rows)` computes only the pixel rows a step reads."""
+
+    blend: FrozenBlend
+    feats: torch.Tensor
+
+    def at(self, rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(features [R, C], alpha [R]) at flat pixel indices rows [R]; None: every pixel in order."""
+        alpha = self.blend.alpha.reshape(-1)
+        if rows is None:
+            return _RowBlend.apply(self.feats, self.blend.A), alpha
+        return _RowBlend.apply(self.feats, self.blend.A[rows.numpy()]), alpha[rows]
+
+
+def _offsets(counts: torch.Tensor) -> torch.Tensor:
+    """CSR row offsets [R + 1] of rows holding counts [R] entries."""
+    out = torch.zeros(counts.numel() + 1, dtype=torch.long)
+    torch.cumsum(counts, 0, out=out[1:])
+    return out
 
 
 def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height, topk: int,
@@ -134,7 +147,7 @@ def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height
     """The FrozenBlend of a view whose frustum holds the surfels `visible` [V] (indices into means
     [N, 3] ...), or None where the native renderer is not built, Top-K is off or no pixel is covered
     (then every step rasterizes)."""
-    import warnings
+    import scipy.sparse
 
     from psimap.render.api import native_available
 
@@ -151,19 +164,20 @@ def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height
         ids, w, alpha = topk_weights(p, opacities[idx].float(), width, height, int(topk), near=near, far=far)
     ids, w = ids.reshape(-1, ids.shape[-1]), w.reshape(-1, w.shape[-1])
     keep = ids >= 0
-    rows = torch.arange(ids.shape[0]).unsqueeze(1).expand_as(ids)[keep]
-    used, cols = torch.unique(ids[keep], return_inverse=True)      # columns: the blended surfels only
-    vals = w[keep]
-    v = int(used.numel())
-    if v == 0:
+    slots = ids[keep]          # pixel-major, as CSR rows want them (a row in Top-K order: matmul needs no sort)
+    if slots.numel() == 0:
         return None
-    with warnings.catch_warnings():     # "sparse CSR support is in beta": matmul is all we use
-        warnings.simplefilter("ignore")
-        A = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (ids.shape[0], v)).coalesce()
-        At = torch.sparse_coo_tensor(torch.stack([cols, rows]), vals, (v, ids.shape[0])).coalesce()
-        A, At = A.to_sparse_csr(), At.to_sparse_csr()
-    nbytes = 2 * int(vals.numel()) * 12 + 4 * int(alpha.numel())
-    return FrozenBlend(A=A, At=At, alpha=alpha.to(means.dtype), visible=idx[used], nbytes=nbytes)
+    # columns: the blended surfels only, numbered in index order (a mark and a cumulative count, no sort)
+    mark = torch.zeros(int(idx.numel()), dtype=torch.bool)
+    mark[slots] = True
+    used = torch.nonzero(mark).flatten()
+    v = int(used.numel())
+    column = torch.full((int(idx.numel()),), -1, dtype=torch.long)
+    column[used] = torch.arange(v)
+    cols, vals = column[slots], w[keep]
+    A = scipy.sparse.csr_matrix((vals.numpy(), cols.numpy(), _offsets(keep.sum(1)).numpy()), shape=(ids.shape[0], v))
+    nbytes = int(vals.numel()) * 12 + 8 * int(alpha.numel())
+    return FrozenBlend(A=A, alpha=alpha.to(means.dtype), visible=idx[used], nbytes=nbytes)
 
 
 def segment_change(prev: torch.Tensor, now: torch.Tensor, min_size: int) -> float:
@@ -271,6 +285,7 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     order = rng.integers(0, len(train_views), size=iters)
     visible: dict[int, torch.Tensor] = {}        # per view, while the geometry is fixed
     blends: dict[int, FrozenBlend | None] = {}   # per view, while the geometry is fixed (frozen_blend)
+    frame_labels: dict = {}                       # per view: PanopticField.frame_labels
     blend_bytes = 0
     guard, removed_total = NonFiniteGuard(), 0
     settle = LabelSettle(cfg.settle_tol, cfg.min_stuff_share)
@@ -312,9 +327,11 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
             field.zero_grad()
             # the geometry's terms first: they draw from `generator` before the field does
             terms = joint.terms(fr) if joint is not None else {}
+            if i not in frame_labels:
+                frame_labels[i] = field.frame_labels(fr.instance, fr.semantic)
             l_ins, l_sem, _ = field.losses(render, means, vis, fr.instance, fr.semantic, fr.K,
                                            fr.viewmat, fr.width, fr.height, generator=generator,
-                                           depth=fr.depth)
+                                           depth=fr.depth, labels=frame_labels[i])
             terms["ins"], terms["sem"] = l_ins, l_sem
             checked = {**(joint.params if joint is not None else {}),
                        "semantic": field.semantic, "instance": field.instance}

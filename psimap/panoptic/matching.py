@@ -86,6 +86,40 @@ def bce_cost(logit: torch.Tensor, target: torch.Tensor, window: torch.Tensor | N
     return (pos @ target.T + neg @ (window - target).T) / window.sum(-1).clamp_min(1.0).unsqueeze(0)
 
 
+def match_costs(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor | None = None,
+                eps: float = 1.0) -> dict:
+    """The matching's terms, [Q, M] each, from one matrix product: "dice" and "bce" (dice_cost's and
+    bce_cost's values), and with a window "on_mask" / "on_ring", each query's mean probability on the
+    mask and on the rest of its window ("ring_pixels" [1, M]: that rest's size).
+
+    prob [Q, P] in (0, 1); target [M, P] {0, 1}; window [M, P] {0, 1} containing its target. With
+    windows only the pixels of some window are read (every term is measured inside them), and BCE's
+    two logs are taken once: [p, -log p, -log(1 - p)] against [target, window].
+    """
+    q, m = prob.shape[0], target.shape[0]
+    if window is not None:
+        inside = window.any(0)
+        if not bool(inside.all()):
+            prob, target, window = prob[:, inside], target[:, inside], window[:, inside]
+    lhs = torch.cat([prob, -torch.log(prob), -torch.log1p(-prob)])                    # [3Q, P]
+    z = lhs @ (target if window is None else torch.cat([target, window])).T          # [3Q, M or 2M]
+    inter, pos_t, neg_t = z[:q, :m], z[q:2 * q, :m], z[2 * q:, :m]
+    n_t = target.sum(-1).unsqueeze(0)                                                # [1, M]
+    if window is None:
+        mass, neg_w = prob.sum(-1, keepdim=True), lhs[2 * q:].sum(-1, keepdim=True)
+        n_w = torch.full_like(n_t, float(prob.shape[-1]))
+    else:
+        mass, neg_w = z[:q, m:], z[2 * q:, m:]
+        n_w = window.sum(-1).unsqueeze(0)
+    out = {"dice": 1.0 - (2.0 * inter + eps) / (mass + n_t + eps),
+           "bce": (pos_t + neg_w - neg_t) / n_w.clamp_min(1.0)}
+    if window is not None:
+        out["on_mask"] = inter / n_t.clamp_min(1.0)
+        out["on_ring"] = (mass - inter) / (n_w - n_t).clamp_min(1.0)
+        out["ring_pixels"] = n_w - n_t
+    return out
+
+
 def hungarian_match(prob: torch.Tensor, target: torch.Tensor, *, class_cost: torch.Tensor | None = None,
                     w_dice: float = 1.0, w_bce: float = 1.0, w_class: float = 1.0,
                     reject_dice: float = PanopticConfig.reject_dice, window: torch.Tensor | None = None) -> Match:
@@ -107,18 +141,16 @@ def hungarian_match(prob: torch.Tensor, target: torch.Tensor, *, class_cost: tor
         p = prob.detach().float().clamp(1e-6, 1 - 1e-6)
         t = target.float()
         win = None if window is None else torch.maximum(window.float(), t)
-        dice = dice_cost(p, t, window=win)
-        cost = w_dice * dice + w_bce * bce_cost(torch.logit(p), t, window=win)
+        terms = match_costs(p, t, win)
+        cost = w_dice * terms["dice"] + w_bce * terms["bce"]
         if class_cost is not None:
             cost = cost + w_class * class_cost.detach().float()
         cost = torch.nan_to_num(cost, nan=1e6, posinf=1e6, neginf=1e6)
-        reject = dice > reject_dice
+        reject = terms["dice"] > reject_dice
         if win is not None:
-            inter = p @ t.T                                                      # [Q, M]
-            n_in = t.sum(-1).unsqueeze(0)
-            n_ring = (win - t).sum(-1).unsqueeze(0)
-            ring = (p @ win.T - inter) / n_ring.clamp_min(1.0)
-            reject |= (n_ring > 0) & (inter / n_in.clamp_min(1.0) <= ring)
+            # "not above" up to float rounding: a uniform tail gives equal means summed in
+            # different orders
+            reject |= (terms["ring_pixels"] > 0) & (terms["on_mask"] <= terms["on_ring"] * (1.0 + 1e-5))
     from scipy.optimize import linear_sum_assignment
 
     rows, cols = linear_sum_assignment(cost.cpu().numpy())
