@@ -41,6 +41,20 @@ import tempfile
 import time
 from pathlib import Path
 
+
+def _use_tree(argv: list[str]) -> None:
+    """In a --child run with --code TREE: import TREE's psimap, not the installed one. Done before
+    anything imports psimap (_results does): once the installed package is in sys.modules, its
+    submodules keep loading from the working tree while its native module is no longer found, and
+    the child timed this tree's code on the torch renderer instead of TREE's."""
+    if "--child" in argv and "--code" in argv:
+        tree = Path(argv[argv.index("--code") + 1]).resolve()
+        # drop the editable install's finder, put the tree first
+        sys.meta_path[:] = [f for f in sys.meta_path if not type(f).__module__.startswith("_editable")]
+        sys.path.insert(0, str(tree))
+
+
+_use_tree(sys.argv)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import markdown_table, save_plot, write_section  # noqa: E402
 
@@ -167,9 +181,10 @@ def run_capture(name: str, work: Path) -> dict:
 
 
 def child_main(a) -> None:
-    if a.code:      # time another tree's psimap: drop the editable install's finder, put the tree first
-        sys.meta_path[:] = [f for f in sys.meta_path if not type(f).__module__.startswith("_editable")]
-        sys.path.insert(0, str(Path(a.code).resolve()))
+    import psimap
+
+    if a.code and not Path(psimap.__file__).resolve().is_relative_to(Path(a.code).resolve()):
+        sys.exit(f"error: --code {a.code}: psimap was imported from {psimap.__file__}")
     import torch
 
     torch.manual_seed(0)
