@@ -24,15 +24,49 @@ def is_solid(mesh) -> bool:
         and bool(mesh.is_winding_consistent) and float(mesh.volume) > 0
 
 
+def is_closed(mesh) -> bool:
+    """Every edge shared by exactly two faces, wound in opposite directions (what manifold3d needs)."""
+    return mesh is not None and len(mesh.faces) >= 4 and bool(mesh.is_watertight) \
+        and bool(mesh.is_winding_consistent)
+
+
 def to_manifold(mesh):
-    """trimesh -> manifold3d.Manifold (empty Manifold when the mesh is not an oriented 2-manifold)."""
+    """trimesh -> manifold3d.Manifold; an empty Manifold when the mesh is not closed (`is_closed`).
+    manifold3d reads every edge's paired half-edge and does not check that one exists: an edge with
+    one face made it read outside its arrays, a segfault or not as memory lay (the room export
+    crashed in `Impl::IsManifold` on a convex collider part whose trimesh hull was left open)."""
     import manifold3d
 
+    if not is_closed(mesh):
+        return manifold3d.Manifold()
     v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
     f = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
     if mesh.volume < 0:     # inside-out input: flip so the boolean sees the right solid
         f = np.ascontiguousarray(f[:, ::-1])
     return manifold3d.Manifold(manifold3d.Mesh(vert_properties=v, tri_verts=f))
+
+
+def closed_convex_hull(points: np.ndarray):
+    """The convex hull of points [P, 3] as a closed trimesh (qhull's facets, wound outward; None for
+    fewer than 4 points or a flat set). trimesh.convex.convex_hull merges and drops qhull's sliver
+    facets and can leave the hull open (a 38-point collider part: 71 faces, 3 edges with one face)."""
+    import trimesh
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) < 4:
+        return None
+    try:
+        hull = ConvexHull(pts)
+    except QhullError:
+        return None
+    faces = hull.simplices.copy()
+    centre = pts[hull.vertices].mean(0)
+    normal = np.cross(pts[faces[:, 1]] - pts[faces[:, 0]], pts[faces[:, 2]] - pts[faces[:, 0]])
+    inward = (normal * (pts[faces[:, 0]] - centre)).sum(1) < 0
+    faces[inward] = faces[inward][:, ::-1]
+    used, faces = np.unique(faces, return_inverse=True)
+    return trimesh.Trimesh(pts[used], faces.reshape(-1, 3), process=False)
 
 
 def from_manifold(man):

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psimap.completion.meshops import to_manifold
+from psimap.completion.meshops import closed_convex_hull, is_closed, to_manifold
 from psimap.exporters.roles import Reason, Role
 
 # an object this much wider than the largest thing class a robot moves (a table: ~2 m) is not one
@@ -158,7 +158,9 @@ def _cut_by_parts(obj, parts, what: str) -> None:
     cut recorded in its repair steps; skipped when less than MIN_KEEP of it is left."""
     import manifold3d
 
-    hulls = [to_manifold(p) for p in parts if len(p.faces) >= 4]
+    # the parts are convex: one left open by its hull is closed again rather than skipped
+    hulls = [to_manifold(p if is_closed(p) else closed_convex_hull(p.vertices)) for p in parts if len(p.faces) >= 4]
+    hulls = [h for h in hulls if not h.is_empty()]
     if not hulls:
         return
     union = manifold3d.Manifold.batch_boolean(hulls, manifold3d.OpType.Add) if len(hulls) > 1 else hulls[0]

@@ -342,7 +342,7 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     height is extruded straight down to z and joined to the object (manifold3d), as the real object
     does rest there. Objects more than `max_gap` above z are not resting and stay as they are.
     """
-    import trimesh
+    from psimap.completion.meshops import closed_convex_hull, from_manifold, is_closed, to_manifold
 
     v = np.asarray(mesh.vertices, np.float64)
     lo, hi = float(v[:, 2].min()), float(v[:, 2].max())
@@ -369,9 +369,11 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     if len(ring) < 3:
         return mesh, False
     foot_pts = np.concatenate([ring, np.column_stack([ring[:, :2], np.full(len(ring), z)])])
+    foot = closed_convex_hull(foot_pts)     # trimesh's hull can be open, and manifold3d must not see that
+    if foot is None or not is_closed(mesh):
+        return mesh, False
     try:
-        foot = trimesh.convex.convex_hull(foot_pts)
-        out = trimesh.boolean.union([mesh, foot], engine="manifold")
+        out = from_manifold(to_manifold(mesh) + to_manifold(foot))
     except Exception:
         return mesh, False
     if not out.is_watertight or out.volume <= 0:

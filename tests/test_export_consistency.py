@@ -413,3 +413,66 @@ def test_a_table_is_not_completed_down_to_the_floor():
     assert block.measured.completed and block.mesh.volume > 3 * obj.volume
     assert not table.measured.completed and table.mesh.is_watertight
     assert table.mesh.volume < 1.6 * obj.volume, (table.mesh.volume, obj.volume)
+
+
+# A convex collider part of the room export (38 points): trimesh's hull of them is open (71 faces,
+# three edges with one face each), and manifold3d, which reads each edge's paired half-edge without
+# checking there is one, segfaulted on it or not depending on where memory lay
+_OPEN_HULL_POINTS = [
+    [-2.757927549949609, -2.555666867307701, 0.6034573530428307], [-2.8322474224194556, -2.524125591299956, 0.6026995914800742],
+    [-2.7611260154965054, -2.5561791861971632, 0.6211929628029631], [-2.767442564202816, -2.560875482294141, 0.41197010742189444],
+    [-2.767442564202816, -2.5471726970523183, 0.41197010742189444], [-2.767442564202816, -2.5467754679259222, 0.42124751302774416],
+    [-2.8252879906588224, -2.524125591299956, 0.5428777503085743], [-2.842662522241462, -2.524125591299956, 0.6211929628029631],
+    [-2.767442564202816, -2.5569216846127567, 0.6211929628029631], [-2.767442564202816, -2.5604448309245047, 0.435173858483895],
+    [-2.7892691815278257, -2.559483296664619, 0.6211929628029631], [-2.8110476327967358, -2.560541356686782, 0.6211929628029631],
+    [-2.8419392215905526, -2.524125591299956, 0.41197010742189444], [-2.905120764005695, -2.524125591299956, 0.6211929628029631],
+    [-2.908978203168052, -2.558729663369463, 0.5743144244655061], [-2.8783598370316392, -2.5601515478793355, 0.6211929628029631],
+    [-2.9203576451760944, -2.524125591299956, 0.5093111629403003], [-2.9207594514861843, -2.524125591299956, 0.4632518260544102],
+    [-2.91892716964452, -2.524125591299956, 0.43916744245430844], [-2.8995114253891545, -2.524125591299956, 0.41197010742189444],
+    [-2.895396854130532, -2.539053494966483, 0.6211929628029631], [-2.913173156814156, -2.524125591299956, 0.5810932775271497],
+    [-2.7754923774427076, -2.5609418807302418, 0.41870002369551074], [-2.8172962598263838, -2.56063685696067, 0.6154705546245214],
+    [-2.778678848317863, -2.5609186305127367, 0.4139115240549763], [-2.7859373537898975, -2.5608656685251345, 0.41197010742189444],
+    [-2.8199429078636418, -2.560617545582994, 0.6211929628029631], [-2.909235666228891, -2.5599660172511993, 0.5581333071919513],
+    [-2.9147190500000577, -2.559926007513048, 0.5150966039128428], [-2.8789454522467923, -2.5601870310595616, 0.6195036784682002],
+    [-2.8773820753834602, -2.560198438303983, 0.6211929628029631], [-2.9220500294894296, -2.559872516715758, 0.4417161508121418],
+    [-2.9220672076074274, -2.5598723913749044, 0.43974656797828254], [-2.9219888953431417, -2.559872962783604, 0.43871654384102843],
+    [-2.921162490719738, -2.5598789926793706, 0.4375581269385476], [-2.897843351608585, -2.5600491417494866, 0.41197010742189444],
+    [-2.90056376074428, -2.560029292170882, 0.41197010742189444], [-2.859466184012156, -2.560329162351839, 0.41197010742189444],
+]
+
+
+def test_an_open_mesh_never_reaches_manifold3d(monkeypatch):
+    """to_manifold hands manifold3d only closed, consistently wound meshes (an open one gives an
+    empty Manifold without calling it); a convex collider part left open is closed again by
+    closed_convex_hull, with the hull's volume, and still cuts the object inside it."""
+    import manifold3d
+
+    from psimap.completion.meshops import closed_convex_hull, is_closed, to_manifold
+    from psimap.exporters.collision import Collision
+    from psimap.exporters.consistency import cut_by_colliders
+
+    pts = np.array(_OPEN_HULL_POINTS)
+    open_box = _box([0.1, 0.1, 0.1], [0, 0, 0])
+    open_box = trimesh.Trimesh(open_box.vertices, open_box.faces[:-2], process=False)   # one side missing
+    handed = []
+    real_mesh = manifold3d.Mesh
+    monkeypatch.setattr(manifold3d, "Mesh", lambda **kw: handed.append(len(kw["tri_verts"])) or real_mesh(**kw))
+    assert to_manifold(open_box).is_empty() and handed == []
+    closed = closed_convex_hull(pts)
+    assert is_closed(closed)
+    from scipy.spatial import ConvexHull
+
+    assert closed.volume == pytest.approx(ConvexHull(pts).volume, rel=1e-9)
+    assert to_manifold(closed).volume() == pytest.approx(closed.volume, rel=1e-5) and handed == [len(closed.faces)]
+    # an object half inside that part: the open part (as trimesh left it, or as a mesh with a face
+    # missing) still cuts it
+    part = trimesh.Trimesh(closed.vertices, closed.faces[1:], process=False)
+    assert not is_closed(part)
+    big = _obj(_box([0.3, 0.3, 0.3], [-2.84, -2.54, 0.5]), 1, "shelf")
+    big.collision = Collision("hull", 0.1, 0.01, parts=[part])
+    lo, hi = pts.min(0), pts.max(0)
+    small = _obj(_box([0.04, 0.02, 0.04], [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]]), 2, "bottle")
+    cut_by_colliders(small, [big])
+    assert small.role is Role.DYNAMIC and small.mesh.is_watertight
+    assert small.mesh.bounds[0, 2] > hi[2] - 0.005           # the lower 2 cm, inside the part, are gone
+    assert any("cut by the collider of shelf_1" in s for s in small.measured.repair_steps)

@@ -583,8 +583,8 @@ def test_rarely_matched_query_is_useless_by_default():
 
 def test_seen_on_sampled_pixels_scales_the_mask_size():
     """A frame larger than pixels_per_step is read at a sample of its pixels (a frozen blend renders
-    only those): "seen" then asks for the sample's share of min_mask_fraction, so a query owning 4x
-    the smallest mask is seen and one owning half of it is not, as on the whole frame."""
+    only those): "seen" then asks for the sample's share of min_mask_fraction, so a query owning 5/3
+    of the smallest mask is seen and one owning half of it is not, as on the whole frame."""
     from types import SimpleNamespace
 
     from psimap.data.frames import ClassInfo
@@ -597,11 +597,11 @@ def test_seen_on_sampled_pixels_scales_the_mask_size():
     cfg = PanopticConfig(feat_dim=4, spawn=False, pixels_per_step=600, min_mask_fraction=0.05)
     field = PanopticField(5, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov), cfg)
     inst = torch.zeros(h, w, dtype=torch.long)
-    inst[5:25, 5:30] = 7                              # 500 px
+    inst[5:15, 5:25] = 7                              # 200 px: ~50 sampled, fewer than 120
 
     def render(idx, feats, topk):
         img = torch.zeros(h, w, feats.shape[1])
-        img[5:25, 5:30, 0] = 0.9                      # query 0 owns the box
+        img[5:15, 5:25, 0] = 0.9                      # query 0 owns the box
         img[30:36, 40:50, 1] = 0.9                    # query 1 owns 60 px elsewhere
         return SimpleNamespace(features=img + feats.sum() * 0, alpha=torch.ones(h, w))
 
