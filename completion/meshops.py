@@ -24,23 +24,45 @@ def is_solid(mesh) -> bool:
         and bool(mesh.is_winding_consistent) and float(mesh.volume) > 0
 
 
+def closed_topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(vertices [V, 3] float32, faces [F, 3] uint32) with coincident vertices merged and degenerate
+    faces dropped, when every edge then has exactly one face on each side (each directed edge once,
+    its reverse once: closed and consistently wound); None otherwise."""
+    v = np.asarray(vertices, dtype=np.float32)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) < 4:
+        return None
+    v, inv = np.unique(v, axis=0, return_inverse=True)
+    f = inv.reshape(-1)[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    if len(f) < 4:
+        return None
+    n = np.int64(len(v))
+    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
+    fwd = np.sort(a * n + b)
+    if np.any(fwd[1:] == fwd[:-1]):             # an edge walked twice one way: non-manifold or mis-wound
+        return None
+    if not np.all(np.isin(b * n + a, fwd)):     # an edge with no face on its other side: open
+        return None
+    return v, f.astype(np.uint32)
+
+
 def is_closed(mesh) -> bool:
-    """Every edge shared by exactly two faces, wound in opposite directions (what manifold3d needs)."""
-    return mesh is not None and len(mesh.faces) >= 4 and bool(mesh.is_watertight) \
-        and bool(mesh.is_winding_consistent)
+    """`closed_topology` holds for the trimesh `mesh` (what manifold3d needs)."""
+    return mesh is not None and closed_topology(mesh.vertices, mesh.faces) is not None
 
 
 def to_manifold(mesh):
-    """trimesh -> manifold3d.Manifold; an empty Manifold when the mesh is not closed (`is_closed`).
+    """trimesh -> manifold3d.Manifold of its `closed_topology`; an empty Manifold when there is none.
     manifold3d reads every edge's paired half-edge and does not check that one exists: an edge with
     one face made it read outside its arrays, a segfault or not as memory lay (the room export
     crashed in `Impl::IsManifold` on a convex collider part whose trimesh hull was left open)."""
     import manifold3d
 
-    if not is_closed(mesh):
+    closed = None if mesh is None else closed_topology(mesh.vertices, mesh.faces)
+    if closed is None:
         return manifold3d.Manifold()
-    v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
-    f = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
+    v, f = (np.ascontiguousarray(x) for x in closed)
     if mesh.volume < 0:     # inside-out input: flip so the boolean sees the right solid
         f = np.ascontiguousarray(f[:, ::-1])
     return manifold3d.Manifold(manifold3d.Mesh(vert_properties=v, tri_verts=f))
