@@ -25,26 +25,23 @@ def is_solid(mesh) -> bool:
 
 
 def closed_topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(vertices [V, 3] float32, faces [F, 3] uint32) with coincident vertices merged and degenerate
-    faces dropped, when every edge then has exactly one face on each side (each directed edge once,
-    its reverse once: closed and consistently wound); None otherwise."""
-    v = np.asarray(vertices, dtype=np.float32)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(f) < 4:
-        return None
-    v, inv = np.unique(v, axis=0, return_inverse=True)
-    f = inv.reshape(-1)[f]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    if len(f) < 4:
+    """(vertices [V, 3] float32, faces [F, 3] uint32) as manifold3d takes them, when every edge of
+    the faces that are triangles (no repeated index, which manifold3d ignores) has exactly one face
+    on each side: each directed edge once, its reverse once (closed, consistently wound); None
+    otherwise. Vertices are not merged by position: manifold3d does not merge them either."""
+    v = np.ascontiguousarray(vertices, dtype=np.float32)
+    f = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1, 3)
+    tri = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])].astype(np.int64)
+    if len(tri) < 4 or int(f.max()) >= len(v):
         return None
     n = np.int64(len(v))
-    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
+    a, b = tri.reshape(-1), tri[:, [1, 2, 0]].reshape(-1)
     fwd = np.sort(a * n + b)
     if np.any(fwd[1:] == fwd[:-1]):             # an edge walked twice one way: non-manifold or mis-wound
         return None
     if not np.all(np.isin(b * n + a, fwd)):     # an edge with no face on its other side: open
         return None
-    return v, f.astype(np.uint32)
+    return v, f
 
 
 def is_closed(mesh) -> bool:

@@ -342,7 +342,9 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     height is extruded straight down to z and joined to the object (manifold3d), as the real object
     does rest there. Objects more than `max_gap` above z are not resting and stay as they are.
     """
-    from psimap.completion.meshops import closed_convex_hull, from_manifold, is_closed, to_manifold
+    import trimesh
+
+    from psimap.completion.meshops import closed_convex_hull, is_closed
 
     v = np.asarray(mesh.vertices, np.float64)
     lo, hi = float(v[:, 2].min()), float(v[:, 2].max())
@@ -369,11 +371,13 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     if len(ring) < 3:
         return mesh, False
     foot_pts = np.concatenate([ring, np.column_stack([ring[:, :2], np.full(len(ring), z)])])
-    foot = closed_convex_hull(foot_pts)     # trimesh's hull can be open, and manifold3d must not see that
-    if foot is None or not is_closed(mesh):
-        return mesh, False
     try:
-        out = from_manifold(to_manifold(mesh) + to_manifold(foot))
+        foot = trimesh.convex.convex_hull(foot_pts)
+        if not is_closed(foot):     # trimesh's hull can be open, and manifold3d must never see that
+            foot = closed_convex_hull(foot_pts)
+        if foot is None or not is_closed(mesh):
+            return mesh, False
+        out = trimesh.boolean.union([mesh, foot], engine="manifold")
     except Exception:
         return mesh, False
     if not out.is_watertight or out.volume <= 0:
