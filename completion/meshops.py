@@ -45,21 +45,27 @@ def closed_topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
 
 
 def is_closed(mesh) -> bool:
-    """`closed_topology` holds for the trimesh `mesh` (what manifold3d needs)."""
-    return mesh is not None and closed_topology(mesh.vertices, mesh.faces) is not None
+    """`closed_topology` holds for the trimesh `mesh` (what manifold3d needs). trimesh's watertight
+    and consistently wound flags (cached on the mesh, and most meshes here have been asked already)
+    imply it; only a mesh they reject (a repeated-index face, or truly open) is checked in full."""
+    if mesh is None or len(mesh.faces) < 4:
+        return False
+    if bool(mesh.is_watertight) and bool(mesh.is_winding_consistent):
+        return int(np.max(mesh.faces)) < len(mesh.vertices)
+    return closed_topology(mesh.vertices, mesh.faces) is not None
 
 
 def to_manifold(mesh):
-    """trimesh -> manifold3d.Manifold of its `closed_topology`; an empty Manifold when there is none.
+    """trimesh -> manifold3d.Manifold; an empty Manifold when the mesh is not closed (`is_closed`).
     manifold3d reads every edge's paired half-edge and does not check that one exists: an edge with
     one face made it read outside its arrays, a segfault or not as memory lay (the room export
     crashed in `Impl::IsManifold` on a convex collider part whose trimesh hull was left open)."""
     import manifold3d
 
-    closed = None if mesh is None else closed_topology(mesh.vertices, mesh.faces)
-    if closed is None:
+    if not is_closed(mesh):
         return manifold3d.Manifold()
-    v, f = (np.ascontiguousarray(x) for x in closed)
+    v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
     if mesh.volume < 0:     # inside-out input: flip so the boolean sees the right solid
         f = np.ascontiguousarray(f[:, ::-1])
     return manifold3d.Manifold(manifold3d.Mesh(vert_properties=v, tri_verts=f))
