@@ -41,7 +41,7 @@ def attach_outliers(mesh, points: np.ndarray, tolerance: float, min_points: int 
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    from .meshops import closed_convex_hull, distance_to_surface, from_manifold, inside, is_closed, to_manifold
+    from .meshops import convex_hull, distance_to_surface, from_manifold, inside, to_manifold
 
     far = distance_to_surface(points, mesh) > 2 * tolerance
     far &= ~inside(points, mesh)
@@ -61,13 +61,8 @@ def attach_outliers(mesh, points: np.ndarray, tolerance: float, min_points: int 
         if len(part) < min_points:
             continue
         anchor, _, _ = trimesh.proximity.closest_point(mesh, part)
-        try:
-            hull = trimesh.convex.convex_hull(np.concatenate([part, anchor]))
-        except Exception:       # degenerate (flat) cluster: nothing solid to add
-            continue
-        if not is_closed(hull):     # trimesh's hull can be open: close it rather than drop it
-            hull = closed_convex_hull(np.concatenate([part, anchor]))
-        if hull is not None and hull.volume > 0:
+        hull = convex_hull(np.concatenate([part, anchor]))
+        if hull is not None and hull.volume > 0:        # None: a degenerate (flat) cluster
             man = man + to_manifold(hull)
             added += 1
     if not added:

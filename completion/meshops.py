@@ -24,35 +24,33 @@ def is_solid(mesh) -> bool:
         and bool(mesh.is_winding_consistent) and float(mesh.volume) > 0
 
 
-def closed_topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(vertices [V, 3] float32, faces [F, 3] uint32) as manifold3d takes them, when every edge of
-    the faces that are triangles (no repeated index, which manifold3d ignores) has exactly one face
-    on each side: each directed edge once, its reverse once (closed, consistently wound); None
-    otherwise. Vertices are not merged by position: manifold3d does not merge them either."""
-    v = np.ascontiguousarray(vertices, dtype=np.float32)
-    f = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1, 3)
-    tri = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])].astype(np.int64)
-    if len(tri) < 4 or int(f.max()) >= len(v):
-        return None
-    n = np.int64(len(v))
+def faces_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether every edge of the faces that are triangles (no repeated index, which manifold3d
+    ignores) has exactly one face on each side: each directed edge once, its reverse once (closed,
+    consistently wound). Vertices are not merged by position: manifold3d does not merge them either."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    tri = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    if len(tri) < 4 or int(f.max()) >= len(vertices):
+        return False
+    n = np.int64(len(vertices))
     a, b = tri.reshape(-1), tri[:, [1, 2, 0]].reshape(-1)
     fwd = np.sort(a * n + b)
     if np.any(fwd[1:] == fwd[:-1]):             # an edge walked twice one way: non-manifold or mis-wound
-        return None
+        return False
     if not np.all(np.isin(b * n + a, fwd)):     # an edge with no face on its other side: open
-        return None
-    return v, f
+        return False
+    return True
 
 
 def is_closed(mesh) -> bool:
-    """`closed_topology` holds for the trimesh `mesh` (what manifold3d needs). trimesh's watertight
+    """`faces_closed` holds for the trimesh `mesh` (what manifold3d needs). trimesh's watertight
     and consistently wound flags (cached on the mesh, and most meshes here have been asked already)
     imply it; only a mesh they reject (a repeated-index face, or truly open) is checked in full."""
     if mesh is None or len(mesh.faces) < 4:
         return False
     if bool(mesh.is_watertight) and bool(mesh.is_winding_consistent):
         return int(np.max(mesh.faces)) < len(mesh.vertices)
-    return closed_topology(mesh.vertices, mesh.faces) is not None
+    return faces_closed(mesh.vertices, mesh.faces)
 
 
 def to_manifold(mesh):
@@ -92,6 +90,18 @@ def closed_convex_hull(points: np.ndarray):
     faces[inward] = faces[inward][:, ::-1]
     used, faces = np.unique(faces, return_inverse=True)
     return trimesh.Trimesh(pts[used], faces.reshape(-1, 3), process=False)
+
+
+def convex_hull(points: np.ndarray):
+    """trimesh's convex hull of points [P, 3], rebuilt from qhull's facets (`closed_convex_hull`)
+    where trimesh left it open; None for a degenerate (flat) set. For hulls a boolean takes."""
+    import trimesh
+
+    try:
+        hull = trimesh.convex.convex_hull(points)
+    except Exception:
+        hull = None
+    return hull if is_closed(hull) else closed_convex_hull(points)
 
 
 def from_manifold(man):

@@ -344,7 +344,7 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     """
     import trimesh
 
-    from psimap.completion.meshops import closed_convex_hull, is_closed
+    from psimap.completion.meshops import convex_hull, is_closed
 
     v = np.asarray(mesh.vertices, np.float64)
     lo, hi = float(v[:, 2].min()), float(v[:, 2].max())
@@ -371,12 +371,10 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     if len(ring) < 3:
         return mesh, False
     foot_pts = np.concatenate([ring, np.column_stack([ring[:, :2], np.full(len(ring), z)])])
+    foot = convex_hull(foot_pts)        # closed: trimesh's union hands both to manifold3d unchecked
+    if foot is None or not is_closed(mesh):
+        return mesh, False
     try:
-        foot = trimesh.convex.convex_hull(foot_pts)
-        if not is_closed(foot):     # trimesh's hull can be open, and manifold3d must never see that
-            foot = closed_convex_hull(foot_pts)
-        if foot is None or not is_closed(mesh):
-            return mesh, False
         out = trimesh.boolean.union([mesh, foot], engine="manifold")
     except Exception:
         return mesh, False
