@@ -641,6 +641,27 @@ def test_match_costs_equal_the_readable_dice_and_bce_costs():
     torch.testing.assert_close(local["on_ring"], ring, rtol=1e-5, atol=1e-6)
 
 
+def test_affinity_is_the_written_out_formula_and_stays_normal_far_away():
+    """A(q, g) = sigmoid(f_q . f_g) exp(-m^2 / 2) wherever exp(-m^2 / 2) is a normal float32 (m^2 up
+    to 160, relative 1e-5: a capped distance there would be off by orders of magnitude); farther,
+    its exponential stays exp(-80), a normal float (subnormal floats take a slow path on x86)."""
+    g = torch.Generator().manual_seed(2)
+    queries = InstanceQueries(torch.randn(3, 8, generator=g), torch.zeros(3, 3),
+                              torch.eye(3).expand(3, 3, 3) * torch.tensor([0.01, 0.04, 0.09]).view(3, 1, 1))
+    d = torch.linspace(0.0, 2.0, 400)                                  # metres along x from the queries
+    pts = torch.stack([d, torch.zeros_like(d), torch.zeros_like(d)], -1)
+    feat = torch.randn(400, 8, generator=g)
+    a = queries.affinity(feat, pts).detach()
+    m2 = queries.mahalanobis2_reference(pts).detach().double()
+    written = torch.sigmoid(feat.double() @ queries.feature.detach().double().T) * torch.exp(-0.5 * m2)
+    near = m2 < 159.0
+    assert int(near.sum()) > 300 and int((~near).sum()) > 100 and float(m2[near].max()) > 150
+    torch.testing.assert_close(a.double()[near], written[near], rtol=1e-4, atol=0.0)
+    sim = torch.sigmoid(feat.double() @ queries.feature.detach().double().T)
+    far = m2 > 161.0
+    torch.testing.assert_close(a.double()[far], sim[far] * math.exp(-80.0), rtol=1e-4, atol=0.0)
+
+
 def test_mahalanobis_product_form_matches_the_readable_one_far_from_small_queries():
     """mahalanobis2 (quadratic monomials x coefficients, float64) gives the per-query triangular
     solve's values and gradients, for 1 cm queries seen from 6 m away as for near points."""
