@@ -14,11 +14,14 @@ class PanopticConfig:
     topk: int = 8                   # features blend over the K largest weights per pixel (paper §5)
     temperature: float = 0.1        # softmax temperature over query affinities
     init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
-    # masks of one class from two of those frames share a query when at least this fraction of each
-    # one's back-projected points lies on the other's surface (one object seen twice; cheaper steps:
-    # tabletop 44 -> 9 initial queries); 0 = one query per mask (field.same_surface_groups). Off by
-    # default: on the tabletop trained 350 steps, 0.5 left a ball split in two (6 instances for 5
-    # objects, PQ 0.924 / 0.922 settled / capped; unmerged 0.980)
+    # masks of two of those frames share a query when each puts at least this share of the points
+    # the other frame sees inside the other mask (associate.same_object_groups; one object seen
+    # twice); 0 = one query per mask. Fewer initial queries, so cheaper first steps: 0.6 gave
+    # tabletop 44 -> 5, room 93 -> 24, demo 85 -> 37, no group holding two objects. Off by default:
+    # over 3-6 view orders the room's panoptic phase took ~25 % less (PQ 0.937-0.939 against
+    # 0.856-0.938) and the tabletop's PQ held (0.984-0.985), but the demo lost 0.02-0.05 PQ (its
+    # 5-20 px mugs and bottles: their spawned queries are dropped as empty, where unmerged seeds
+    # leave a spare query to take them over)
     init_merge: float = 0.0
     # 2D masks smaller than this fraction of the image are ignored (5 px at 160x120: bottles and
     # balls there cover a median 7-20 px; the former 0.002 = 38 px ignored most of their masks)

@@ -16,6 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from psimap.panoptic.adjust import co_mask_duplicates, duplicate_queries, useless_queries
+from psimap.panoptic.associate import MaskFrame, same_object_groups
 from psimap.panoptic.config import PanopticConfig
 from psimap.panoptic.matching import hungarian_match, mask_windows, masks_from_ids, matched_mask_loss
 from psimap.panoptic.queries import InstanceQueries, init_from_points, softmax_last
@@ -104,16 +105,16 @@ def init_queries(frames, classes, cfg: PanopticConfig, scene_scale: float,
                  generator: torch.Generator | None = None) -> InstanceQueries:
     """Queries from the thing masks of `cfg.init_frames` frames spread over the sequence.
 
-    Every mask gives one query (Gaussian = its back-projected points), except that masks of one
-    class from different frames whose points cover each other (`same_surface_groups`) share one:
-    still more queries than objects, on purpose (dynamic adjustment removes the useless and
-    duplicate ones during training), but not one per view of every object, each step costing in
-    proportion to the queries.
+    Every mask gives one query (Gaussian = its back-projected points); with cfg.init_merge > 0,
+    masks of different frames that show one object (`associate.same_object_groups`) share one.
+    Either way more queries than objects: dynamic adjustment removes the useless and duplicate ones
+    during training.
     """
     ids, thing = class_tables(classes)
     n = len(frames)
     picks = np.unique(np.linspace(0, n - 1, min(cfg.init_frames, n)).round().astype(int)) if n else []
-    groups, group_cls, group_frame = [], [], []
+    groups, group_frame, group_mask = [], [], []
+    mask_frames = {}
     for i in picks:
         fr = frames[int(i)]
         if fr.instance is None:
@@ -122,69 +123,24 @@ def init_queries(frames, classes, cfg: PanopticConfig, scene_scale: float,
         sem = None if fr.semantic is None else torch.as_tensor(np.asarray(fr.semantic, dtype=np.int64))
         min_px = max(1, int(cfg.min_mask_fraction * inst.numel()))
         depth = torch.as_tensor(np.asarray(fr.depth, dtype=np.float32))
-        masks, mask_cls = thing_masks(inst, sem, ids, thing, min_px)
-        for m, c in zip(masks, mask_cls.tolist()):
+        masks, _ = thing_masks(inst, sem, ids, thing, min_px)
+        local = np.zeros(tuple(inst.shape), dtype=np.int64)          # thing mask k -> k + 1
+        for k, m in enumerate(masks):
+            local[m.numpy()] = k + 1
             pts = backproject(depth, torch.as_tensor(fr.K), torch.as_tensor(fr.c2w), m)
             if pts.shape[0] >= 3:
                 groups.append(pts)
-                group_cls.append(c)
                 group_frame.append(int(i))
+                group_mask.append(k + 1)
+        mask_frames[int(i)] = MaskFrame(depth=depth.numpy(), K=np.asarray(fr.K, np.float64),
+                                        c2w=np.asarray(fr.c2w, np.float64), instance=local)
     if cfg.init_merge > 0 and len(groups) > 1:
-        label = same_surface_groups(groups, group_cls, group_frame, cfg.init_merge)
+        label = same_object_groups([g.numpy() for g in groups], group_frame, group_mask, mask_frames,
+                                   cfg.init_merge)
         groups = [torch.cat([groups[j] for j in np.flatnonzero(label == g)]) for g in range(int(label.max()) + 1)]
     feat, mean, cov = init_from_points(groups, cfg.feat_dim, generator=generator)
     return InstanceQueries(feat, mean, cov, temperature=cfg.temperature, scene_scale=scene_scale,
                            generator=generator)
-
-
-# Points per mask compared by same_surface_groups, and the distance at which a point counts as lying
-# on the other mask's surface: this fraction of the smaller mask's extent, at most MERGE_DISTANCE (m)
-MERGE_POINTS = 400
-MERGE_REL_DISTANCE = 0.1
-MERGE_DISTANCE = 0.03
-
-
-def same_surface_groups(groups: list[torch.Tensor], cls: list[int], frame: list[int],
-                        coverage: float) -> np.ndarray:
-    """Group label [G] per mask: masks of one class seen in different frames are joined (transitively)
-    when at least `coverage` of each one's back-projected points [P_i, 3] lie near the other's: one
-    object's views. A small object's mask inside a merged 2D mask (mug + shelf) covers the merged
-    one only in part, so it keeps its own query; masks of one frame are never joined."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    g = len(groups)
-    rng = np.random.default_rng(0)
-    pts = []
-    for p in groups:
-        p = p.numpy()
-        pts.append(p[rng.choice(len(p), MERGE_POINTS, replace=False)] if len(p) > MERGE_POINTS else p)
-    trees = [cKDTree(p) for p in pts]
-    # a point lies on another mask's surface within that surface's own sampling too (pixel
-    # footprints, the subsample): the median distance to a nearest neighbour, twice
-    gap = np.array([2.0 * np.median(t.query(p, k=2)[0][:, 1]) if len(p) > 1 else 0.0 for t, p in zip(trees, pts)])
-    lo = np.array([p.min(0) for p in pts])
-    hi = np.array([p.max(0) for p in pts])
-    size = np.linalg.norm(hi - lo, axis=1)
-    edges = []
-    for a in range(g):
-        for b in range(a + 1, g):
-            if cls[a] != cls[b] or frame[a] == frame[b]:
-                continue
-            d = min(MERGE_DISTANCE, max(MERGE_REL_DISTANCE * min(size[a], size[b]), gap[a], gap[b]))
-            if np.any(lo[a] > hi[b] + d) or np.any(lo[b] > hi[a] + d):     # boxes apart
-                continue
-            ab = np.mean(trees[b].query(pts[a], distance_upper_bound=d)[0] <= d)
-            if ab < coverage:
-                continue
-            if np.mean(trees[a].query(pts[b], distance_upper_bound=d)[0] <= d) >= coverage:
-                edges.append((a, b))
-    if not edges:
-        return np.arange(g)
-    e = np.array(edges)
-    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(g, g))
-    return connected_components(graph, directed=False)[1]
 
 
 @dataclass
