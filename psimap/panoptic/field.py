@@ -124,16 +124,18 @@ def init_queries(frames, classes, cfg: PanopticConfig, scene_scale: float,
         min_px = max(1, int(cfg.min_mask_fraction * inst.numel()))
         depth = torch.as_tensor(np.asarray(fr.depth, dtype=np.float32))
         masks, _ = thing_masks(inst, sem, ids, thing, min_px)
-        local = np.zeros(tuple(inst.shape), dtype=np.int64)          # thing mask k -> k + 1
         for k, m in enumerate(masks):
-            local[m.numpy()] = k + 1
             pts = backproject(depth, torch.as_tensor(fr.K), torch.as_tensor(fr.c2w), m)
             if pts.shape[0] >= 3:
                 groups.append(pts)
                 group_frame.append(int(i))
                 group_mask.append(k + 1)
-        mask_frames[int(i)] = MaskFrame(depth=depth.numpy(), K=np.asarray(fr.K, np.float64),
-                                        c2w=np.asarray(fr.c2w, np.float64), instance=local)
+        if cfg.init_merge > 0:          # what the association reads of the frame: thing mask k -> id k + 1
+            local = np.zeros(tuple(inst.shape), dtype=np.int64)
+            for k, m in enumerate(masks):
+                local[m.numpy()] = k + 1
+            mask_frames[int(i)] = MaskFrame(depth=depth.numpy(), K=np.asarray(fr.K, np.float64),
+                                            c2w=np.asarray(fr.c2w, np.float64), instance=local)
     if cfg.init_merge > 0 and len(groups) > 1:
         label = same_object_groups([g.numpy() for g in groups], group_frame, group_mask, mask_frames,
                                    cfg.init_merge)
