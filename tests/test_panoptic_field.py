@@ -47,11 +47,19 @@ def _two_box_scene(n_frames=10, w=48, h=36, seed=0):
     return s, frames, gts
 
 
-def test_shuffled_ids_become_one_consistent_id_per_object():
+@pytest.mark.parametrize("init_merge", [0.0, 0.6])
+def test_shuffled_ids_become_one_consistent_id_per_object(init_merge):
+    """Per-frame ids shuffled every frame become one id per object across the scene; with
+    init_merge the masks of one box in the 4 seed frames start as one query (the association's
+    groups), and training ends at the same labels."""
     torch.manual_seed(0)
     s, frames, gts = _two_box_scene()
-    cfg = PanopticConfig(init_frames=4, adjust_start=40, adjust_every=40, pixels_per_step=2048)
-    state = fit_panoptic(s, frames, CLASSES, iters=160, cfg=cfg, seed=0, backend="auto")
+    cfg = PanopticConfig(init_frames=4, adjust_start=40, adjust_every=40, pixels_per_step=2048,
+                         init_merge=init_merge)
+    log = []
+    state = fit_panoptic(s, frames, CLASSES, iters=160, cfg=cfg, seed=0, backend="auto", log=log.append)
+    initial = int(log[0].split(" initial queries")[0].split()[-1])
+    assert initial == (8 if init_merge == 0 else 2), log[0]      # 2 boxes x 4 frames; one per box
     inst = state["surfels"]["instance_id"]
     sem = state["surfels"]["semantic_id"]
     # queries were over-provisioned (one per mask of 4 frames) and pruned down to about the objects
