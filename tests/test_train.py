@@ -252,6 +252,41 @@ def test_geo_weight_schedule(scene_frames):
     assert TrainConfig().geo_final == 0.0
 
 
+def _ssim_written_out(a, b, window=11, sigma=1.5):
+    """SSIM as Wang et al. write it: each local mean one 2D convolution with the 11x11 Gaussian."""
+    import torch.nn.functional as F
+
+    C = a.shape[-1]
+    x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+    r = torch.arange(window, dtype=a.dtype) - (window - 1) / 2
+    g = torch.exp(-r**2 / (2 * sigma**2))
+    w = (g[:, None] * g[None, :] / g.sum() ** 2).expand(C, 1, window, window)
+
+    def blur(t):
+        return F.conv2d(F.pad(t, (window // 2,) * 4, mode="replicate"), w, groups=C)
+
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    return (((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))).mean()
+
+
+@pytest.mark.parametrize("shape", [(20, 24, 3), (37, 16, 1)])
+def test_separable_ssim_is_the_written_out_one(shape):
+    """ssim (two 1D passes, the five means in two calls) gives the 2D-window SSIM's value and
+    gradient in the prediction, on images that are neither square nor alike."""
+    g = torch.Generator().manual_seed(1)
+    target = torch.rand(*shape, generator=g)
+    pred = (0.6 * target + 0.4 * torch.rand(*shape, generator=g)).requires_grad_(True)
+    fast = L.ssim(pred, target)
+    (v_fast,) = torch.autograd.grad(fast, pred)
+    ref = _ssim_written_out(pred, target)
+    (v_ref,) = torch.autograd.grad(ref, pred)
+    assert 0.2 < float(ref.detach()) < 0.95
+    assert float(fast.detach()) == pytest.approx(float(ref.detach()), rel=1e-5)
+    torch.testing.assert_close(v_fast, v_ref, rtol=1e-4, atol=1e-7)
+
+
 def test_losses():
     g = torch.Generator().manual_seed(0)
     a = torch.rand(20, 24, 3, generator=g)

@@ -7,28 +7,37 @@ import torch.nn.functional as F
 from psimap.transforms import pixels_to_camera_torch
 
 
-def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32):
+def _gaussian_1d(size: int = 11, sigma: float = 1.5, dtype=torch.float32):
     x = torch.arange(size, dtype=dtype) - (size - 1) / 2
     g = torch.exp(-x**2 / (2 * sigma**2))
-    g = g / g.sum()
-    return g[:, None] * g[None, :]                                    # [size, size]
+    return g / g.sum()                                                # [size]
+
+
+def gaussian_blur(t, window: int = 11, sigma: float = 1.5):
+    """t [1, K, H, W] blurred per channel by the normalised Gaussian window (replicate padding): the
+    window is an outer product, so two 1D passes (vertical, then horizontal) give the 2D
+    convolution's values with 2 x 11 taps a pixel instead of 121."""
+    k, pad = t.shape[1], window // 2
+    g = _gaussian_1d(window, sigma, dtype=t.dtype).to(t.device)
+    t = F.pad(t, (pad,) * 4, mode="replicate")
+    t = F.conv2d(t, g.view(1, 1, window, 1).expand(k, 1, window, 1), groups=k)
+    return F.conv2d(t, g.view(1, 1, 1, window).expand(k, 1, 1, window), groups=k)
 
 
 def ssim(a, b, window: int = 11):
-    """Mean SSIM of images a, b: [H, W, C] in [0, 1] (Gaussian window 11, sigma 1.5; Wang et al.)."""
+    """Mean SSIM of images a, b: [H, W, C] in [0, 1] (Gaussian window 11, sigma 1.5; Wang et al.).
+    Differentiable in a; b is the target. The five local means are two blur calls (separable,
+    channels stacked): the target's two without gradient, a's three in one autograd node (a
+    320x240 SSIM forward + backward 22 -> 11 ms against one 11x11 convolution per mean)."""
     C = a.shape[-1]
     x = a.permute(2, 0, 1)[None]
-    y = b.permute(2, 0, 1)[None]
-    w = _gaussian_window(window, dtype=a.dtype).to(a.device).expand(C, 1, window, window)
-    pad = window // 2
-
-    def blur(t):
-        return F.conv2d(F.pad(t, (pad,) * 4, mode="replicate"), w, groups=C)
-
-    mx, my = blur(x), blur(y)
-    sxx = blur(x * x) - mx * mx
-    syy = blur(y * y) - my * my
-    sxy = blur(x * y) - mx * my
+    y = b.detach().permute(2, 0, 1)[None]
+    with torch.no_grad():
+        my, byy = gaussian_blur(torch.cat([y, y * y], 1), window).split(C, 1)
+    mx, bxx, bxy = gaussian_blur(torch.cat([x, x * x, x * y], 1), window).split(C, 1)
+    sxx = bxx - mx * mx
+    syy = byy - my * my
+    sxy = bxy - mx * my
     c1, c2 = 0.01**2, 0.03**2
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     return s.mean()
