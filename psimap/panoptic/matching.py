@@ -100,7 +100,7 @@ def window_pixels(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor
 
 
 def match_costs(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor | None = None,
-                eps: float = 1.0) -> dict:
+                eps: float = 1.0, clamp: float | None = None) -> dict:
     """The matching's terms, [Q, M] each: "dice" and "bce" (dice_cost's and bce_cost's values), and
     with a window "on_mask" / "on_ring", each query's mean probability on the mask and on the rest of
     its window ("ring_pixels" [1, M]: that rest's size).
@@ -109,10 +109,13 @@ def match_costs(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor |
     windows only the pixels of some window are read (every term is measured inside them). Three
     products with [target, window]: p, log p and log(1 - p), each taken once and never copied into
     one [3Q, P] block (that copy and the logs' negation were ~5 ms of a step at 85 queries); the
-    signs are applied to the [Q, M] results.
+    signs are applied to the [Q, M] results. clamp: the probabilities are first clamped to
+    [clamp, 1 - clamp] (on the window pixels only: no copy of the rest).
     """
     m = target.shape[0]
     x, target, window = window_pixels(prob, target, window)                        # x [P, Q]
+    if clamp is not None:
+        x = x.clamp(clamp, 1 - clamp)
     lhs = target if window is None else torch.cat([target, window])               # [M or 2M, P]
     z_p = (lhs @ x).T                                                              # [Q, M or 2M]
     z_log = (lhs @ torch.log(x)).T
@@ -155,9 +158,7 @@ def hungarian_match(prob: torch.Tensor, target: torch.Tensor, *, class_cost: tor
     with torch.no_grad():
         t = target.float()
         win = None if window is None else torch.maximum(window.float(), t)
-        # the windows' pixels first: the clamp then copies those only
-        x, t, win = window_pixels(prob.detach().float(), t, win)
-        terms = match_costs(x.clamp(1e-6, 1 - 1e-6).T, t, win)
+        terms = match_costs(prob.detach().float(), t, win, clamp=1e-6)
         cost = w_dice * terms["dice"] + w_bce * terms["bce"]
         if class_cost is not None:
             cost = cost + w_class * class_cost.detach().float()
