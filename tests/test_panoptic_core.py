@@ -594,7 +594,8 @@ def test_seen_on_sampled_pixels_scales_the_mask_size():
     h, w = 40, 60                                     # 2400 px, 600 sampled, smallest mask 120 px
     K = torch.tensor([[30.0, 0, 30], [0, 30.0, 20], [0, 0, 1]])
     feat, mean, cov = init_from_points([torch.randn(30, 3) * 0.05, torch.randn(30, 3) * 0.05 + 5.0], 4)
-    cfg = PanopticConfig(feat_dim=4, spawn=False, pixels_per_step=600, min_mask_fraction=0.05)
+    # single random pixels: the sample's share of a mask is then its share of the frame, every step
+    cfg = PanopticConfig(feat_dim=4, spawn=False, pixels_per_step=600, sample_tile=0, min_mask_fraction=0.05)
     field = PanopticField(5, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov), cfg)
     inst = torch.zeros(h, w, dtype=torch.long)
     inst[5:15, 5:25] = 7                              # 200 px: ~50 sampled, fewer than 120
@@ -611,6 +612,69 @@ def test_seen_on_sampled_pixels_scales_the_mask_size():
                      K, torch.eye(4), w, h, generator=g)
     assert field.visible.tolist() == [4.0, 0.0]
     assert field.matched.tolist() == [4.0, 0.0]
+
+
+def test_tiles_cover_the_image_once_and_the_sample_holds_every_seed_tile():
+    """sample_pixels with tiles: whole tiles (edge tiles cut at the border), every seed pixel's
+    tile, ~n pixels, ascending and distinct; single pixels with tile 0; None when n covers the image."""
+    from psimap.panoptic.field import sample_pixels, tile_pixels
+
+    w, h, t = 50, 37, 8                                    # edge tiles on both axes
+    tiles = tile_pixels(w, h, t)
+    assert tiles.shape == (7 * 5, 64)
+    flat = tiles[tiles >= 0]
+    assert torch.equal(flat.sort().values, torch.arange(w * h))           # each pixel in one tile
+    assert torch.equal(tiles[1, :3], torch.tensor([8, 9, 10]))             # row-major tiles
+    assert torch.equal(tiles[7, :2], torch.tensor([8 * w, 8 * w + 1]))      # tile row 1 starts at y = 8
+    g = torch.Generator().manual_seed(0)
+    seeds = torch.tensor([0, 49 + 36 * w, 20 + 10 * w])                      # corner, far corner, middle
+    pix = sample_pixels(w, h, 600, t, g, seeds)
+    assert torch.equal(pix, pix.unique())                                   # ascending, distinct
+    for sd in seeds.tolist():                                               # the seed's whole tile
+        tile = tiles[(sd // w) // t * 7 + (sd % w) // t]
+        assert bool(torch.isin(tile[tile >= 0], pix).all())
+    ids = ((pix // w) // t * 7 + (pix % w) // t).unique()                  # 600 // 64 = 9 whole tiles
+    assert ids.numel() == 9
+    assert pix.numel() == int((tiles[ids] >= 0).sum()) <= 600
+    many = sample_pixels(w, h, 100, t, g, torch.arange(0, w * h, 97))       # more seed tiles than n
+    assert many.numel() > 100
+    single = sample_pixels(w, h, 600, 0, torch.Generator().manual_seed(1))
+    assert single.numel() == 600 and torch.equal(single, torch.randperm(w * h, generator=torch.Generator().manual_seed(1))[:600])
+    assert sample_pixels(w, h, w * h, t, g) is None
+
+
+@pytest.mark.parametrize("tile", [8, 0])
+def test_every_mask_is_read_every_step_when_pixels_are_tiles(tile):
+    """A 9 px mask in a 60 x 40 frame read at 120 pixels a step: tiles seeded by a pixel of every
+    mask read it at every step (its query seen and matched 6 of 6); 120 single random pixels read
+    ~0.5 of its 9 and leave it unread at most steps (its query not seen there)."""
+    from types import SimpleNamespace
+
+    from psimap.data.frames import ClassInfo
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
+
+    h, w = 40, 60
+    K = torch.tensor([[30.0, 0, 30], [0, 30.0, 20], [0, 0, 1]])
+    feat, mean, cov = init_from_points([torch.randn(30, 3) * 0.05, torch.randn(30, 3) * 0.05 + 5.0], 4)
+    cfg = PanopticConfig(feat_dim=4, spawn=False, pixels_per_step=120, sample_tile=tile, min_mask_fraction=0.001)
+    field = PanopticField(5, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov), cfg)
+    inst = torch.zeros(h, w, dtype=torch.long)
+    inst[17:20, 25:28] = 7                            # 9 px inside the 8 x 8 tile (16..23, 24..31)
+
+    def render(idx, feats, topk):
+        img = torch.zeros(h, w, feats.shape[1])
+        img[17:20, 25:28, 0] = 0.9                    # query 0 owns the mask
+        return SimpleNamespace(features=img + feats.sum() * 0, alpha=torch.ones(h, w))
+
+    g = torch.Generator().manual_seed(0)
+    for _ in range(6):
+        field.losses(render, torch.zeros(5, 3), torch.arange(5), inst, torch.where(inst > 0, 1, 0),
+                     K, torch.eye(4), w, h, generator=g)
+    if tile:
+        assert field.visible.tolist() == [6.0, 0.0] and field.matched.tolist() == [6.0, 0.0]
+    else:
+        assert field.visible[0] < 6
 
 
 def test_match_costs_equal_the_readable_dice_and_bce_costs():

@@ -123,26 +123,34 @@ def test_fit_is_deterministic_whatever_the_global_rng_and_thread_count():
     assert torch.equal(a["queries"]["feature"], b["queries"]["feature"])
 
 
-def test_frozen_blend_trains_the_field_a_rasterized_run_trains():
+@pytest.mark.parametrize("pixels", [2048, 600])
+def test_frozen_blend_trains_the_field_a_rasterized_run_trains(pixels):
     """On fixed geometry each view's feature render is computed once as a sparse Top-K blend
     (fit.frozen_blend) and the steps multiply by it, over the surfels some pixel blends: the field
-    it trains labels the surfels as rasterizing every step does (same queries, same ids)."""
+    it trains labels the surfels as rasterizing every step does (same queries, same ids). With
+    fewer pixels a step than the 48 x 36 frames hold, a frozen step reads the sampled tiles'
+    rows over only the surfels they blend (FrozenBlend.at_pixels), the rasterized one all of them."""
     from psimap.panoptic import fit
     from psimap.render.api import native_available
 
     if not native_available():
         pytest.skip("the frozen blend needs the native renderer")
     s, frames, _ = _two_box_scene(n_frames=6)
-    cfg = PanopticConfig(init_frames=3, adjust_start=20, adjust_every=20, pixels_per_step=2048)
-    calls = []
-    real = fit.frozen_blend
+    cfg = PanopticConfig(init_frames=3, adjust_start=20, adjust_every=20, pixels_per_step=pixels)
+    calls, parts = [], []
+    real, real_part = fit.frozen_blend, fit.FrozenBlend.at_pixels
     fit.frozen_blend = lambda *a, **k: calls.append(1) or real(*a, **k)
+    fit.FrozenBlend.at_pixels = lambda self, rows: parts.append(rows.numel()) or real_part(self, rows)
     try:
         a = fit_panoptic(s, frames, CLASSES, iters=40, cfg=cfg, seed=4, frozen=True)
     finally:
-        fit.frozen_blend = real
+        fit.frozen_blend, fit.FrozenBlend.at_pixels = real, real_part
     b = fit_panoptic(s, frames, CLASSES, iters=40, cfg=cfg, seed=4, frozen=False)
     assert len(calls) == 6                      # once per view, not per step
+    if pixels < 48 * 36:                        # every step read whole tiles: 9 or more of 8 x 8
+        assert len(parts) == 40 and min(parts) >= 9 * 64 - 2 * 8 * 8 and max(parts) < 48 * 36
+    else:
+        assert parts == []
     assert torch.equal(a["surfels"]["instance_id"], b["surfels"]["instance_id"])
     assert a["queries"]["feature"].shape == b["queries"]["feature"].shape
     assert torch.equal(a["surfels"]["semantic_id"], b["surfels"]["semantic_id"])
@@ -429,3 +437,22 @@ def test_frozen_blend_renders_the_pixels_asked_for_as_the_renderer_does():
     hidden = torch.ones(vis.numel(), dtype=torch.bool)
     hidden[pos] = False
     assert float(g_ref[hidden].abs().sum()) == 0.0
+    # the blend of only those pixels, over only the surfels they blend: the same render and gradient
+    rows_sorted = rows.sort().values
+    part = blend.at_pixels(rows_sorted)
+    assert 0 < part.visible.numel() < blend.visible.numel()
+    own = torch.searchsorted(blend.visible, part.visible)
+    assert torch.equal(blend.visible[own], part.visible)
+    f_part = f_blend.detach()[own].clone().requires_grad_(True)
+    got_part, alpha_part = part.render(f_part).at(rows)                 # any order of the rows it holds
+    torch.testing.assert_close(got_part, got.detach(), rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(alpha_part, alpha)
+    (g_part,) = torch.autograd.grad((got_part * up).sum(), f_part)
+    torch.testing.assert_close(g_part, g_blend[own], rtol=1e-6, atol=1e-7)
+    # a surfel the blend holds but these pixels do not blend had no gradient
+    rest = torch.ones(blend.visible.numel(), dtype=torch.bool)
+    rest[own] = False
+    assert float(g_blend[rest].abs().sum()) == 0.0
+    with pytest.raises(ValueError, match="outside the rows"):
+        part.render(f_part).at(torch.tensor([int(torch.ones(v.width * v.height).index_fill(
+            0, rows_sorted, 0).nonzero()[0])]))

@@ -8,6 +8,7 @@ The training loop that drives the field is `psimap.panoptic.fit`.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -154,6 +155,53 @@ class FrameLabels:
     mask_cls: torch.Tensor           # [M] long their class columns (-1 unknown)
     windows: torch.Tensor            # [M, H*W] bool their neighbourhoods (mask_windows)
     columns: torch.Tensor | None     # [H*W] long each pixel's class column (-1 void); None without semantics
+    mask_pixels: torch.Tensor | None = None   # [sum of mask sizes] long flat pixel indices, mask by mask
+    mask_offsets: torch.Tensor | None = None  # [M + 1] long where each mask's pixels start in mask_pixels
+
+    def random_mask_pixels(self, generator: torch.Generator | None = None) -> torch.Tensor | None:
+        """[M] long one uniformly random pixel (flat index) of each thing mask; None without masks."""
+        if self.mask_pixels is None or self.mask_offsets is None or self.mask_offsets.numel() < 2:
+            return None
+        start, count = self.mask_offsets[:-1], self.mask_offsets.diff()
+        pick = (torch.rand(count.numel(), generator=generator) * count).long().clamp_max(count - 1)
+        return self.mask_pixels[start + pick]
+
+
+@functools.lru_cache(maxsize=8)
+def tile_pixels(width: int, height: int, tile: int) -> torch.Tensor:
+    """[T, tile * tile] long flat pixel indices of each tile of a width x height image (tiles row
+    by row, T = ceil(W / tile) * ceil(H / tile)); -1 where an edge tile runs past the image."""
+    tw, th = -(-width // tile), -(-height // tile)
+    y, x = torch.arange(th * tile).unsqueeze(1), torch.arange(tw * tile).unsqueeze(0)
+    flat = torch.where((y < height) & (x < width), y * width + x, -1)          # [th * tile, tw * tile]
+    return flat.view(th, tile, tw, tile).permute(0, 2, 1, 3).reshape(th * tw, tile * tile)
+
+
+def sample_pixels(width: int, height: int, n: int, tile: int, generator: torch.Generator | None = None,
+                  seeds: torch.Tensor | None = None) -> torch.Tensor | None:
+    """The flat pixel indices [P] a step reads (PanopticConfig.pixels_per_step / sample_tile), or None
+    for every pixel when the image has no more than n.
+
+    tile 0: n distinct random pixels. tile > 0: whole tile x tile tiles, first the tile of each seed
+    pixel seeds [S] (a random pixel of every mask: each mask is read every step, whatever its size),
+    then random others up to n / tile^2 tiles in all; P can pass n only by the seeds' tiles.
+    Ascending, so the rows a frozen blend slices lie in memory order."""
+    hw = int(width) * int(height)
+    if n >= hw:
+        return None
+    if tile <= 0:
+        return torch.randperm(hw, generator=generator)[:n]
+    tiles = tile_pixels(int(width), int(height), int(tile))
+    chosen = torch.zeros(tiles.shape[0], dtype=torch.bool)
+    if seeds is not None and seeds.numel():
+        tw = -(-int(width) // tile)
+        chosen[(seeds // width) // tile * tw + (seeds % width) // tile] = True
+    need = max(0, n // (tile * tile) - int(chosen.sum()))
+    if need:
+        perm = torch.randperm(tiles.shape[0], generator=generator)
+        chosen[perm[~chosen[perm]][:need]] = True
+    rows = tiles[chosen].flatten()
+    return rows[rows >= 0].sort().values
 
 
 class PanopticField(nn.Module):
@@ -236,8 +284,8 @@ class PanopticField(nn.Module):
                          mask_cls: torch.Tensor | None = None) -> None:
         """Queue back-projected points of unmatched masks that no free query explains.
 
-        masks [M, H, W] bool; drawn_on(rows [R] flat pixel indices) -> [Q] the queries' mean rendered
-        probabilities there;
+        masks [M, H, W] bool; drawn_on(m) -> [Q] the queries' mean rendered probabilities on the
+        pixels of mask m that the step read (None: it read none, so nothing can be told of it);
         mask_cls [M] class columns (-1 unknown). A query matched to another mask in this frame is
         busy with that object, so only the free (unmatched) queries can cover a mask: by rendering
         it (mean probability > 0.5 over its pixels) or by holding its 3D centre within 3 sigma.
@@ -259,7 +307,9 @@ class PanopticField(nn.Module):
         for m in unmatched:
             if queued >= self.cfg.max_spawn_per_step:
                 break
-            drawn = drawn_on(torch.nonzero(masks[m].reshape(-1)).flatten())             # [Q]
+            drawn = drawn_on(m)                                                        # [Q]
+            if drawn is None:
+                continue
             if bool(free.any()) and float(drawn[free].max()) > 0.5:
                 continue
             if self.cfg.spawn_split and mask_cls is not None and int(mask_cls[m]) >= 0:
@@ -302,17 +352,27 @@ class PanopticField(nn.Module):
     def losses(self, render, means: torch.Tensor, visible_idx: torch.Tensor, instance: torch.Tensor | None,
                semantic: torch.Tensor | None, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int,
                generator: torch.Generator | None = None, depth: torch.Tensor | None = None,
-               labels: "FrameLabels | None" = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+               labels: "FrameLabels | None" = None,
+               pixels: "torch.Tensor | None | str" = "sample") -> tuple[torch.Tensor, torch.Tensor, dict]:
         """(L_ins, L_sem, info) for one frame.
 
-        render(idx [V], features [V, C], topk) -> RenderOutput; means [N, 3] (detached positions are
-        used for the queries' Gaussians); visible_idx [V] surfels in this view; instance / semantic
-        [H, W] long per-frame pseudo-labels (None when absent); labels: this field's
-        `frame_labels` of them, when the caller keeps it per view (computed here otherwise).
+        render(idx [V], features [V, C], topk) -> RenderOutput or a frozen blend's render (`.at`);
+        means [N, 3] (detached positions are used for the queries' Gaussians); visible_idx [V]
+        surfels in this view; instance / semantic [H, W] long per-frame pseudo-labels (None when
+        absent); labels: this field's `frame_labels` of them, when the caller keeps it per view
+        (computed here otherwise). pixels: the flat pixel indices [P] to read (the caller's
+        `sample_pixels`, whose render may hold only those rows), None for every pixel, "sample" to
+        draw them here.
         """
         cfg = self.cfg
         q = self.queries.count
         s = self.class_ids.numel()
+        if labels is None:
+            labels = self.frame_labels(instance, semantic)
+        # the sampled pixels (all of them, in order, when the frame has no more than
+        # pixels_per_step: every term is a sum over pixels, so no permutation and no gathered copy);
+        # a frozen blend renders only these rows (a 640x480 frame: 20k of 307k)
+        pix = self.sample_pixels(width, height, labels, generator) if isinstance(pixels, str) else pixels
         pos = means.detach()[visible_idx]
         f_vis = self.instance[visible_idx]
         sem_vis = self.semantic[visible_idx]          # gathered once: each gather's backward is an [N, S] scatter
@@ -326,10 +386,6 @@ class PanopticField(nn.Module):
         feats = torch.cat([dist, sem_vis], dim=-1)
         out = render(visible_idx, feats, cfg.topk)
         hw = int(width) * int(height)
-        # the sampled pixels (all of them, in order, when the frame has no more than
-        # pixels_per_step: every term is a sum over pixels, so no permutation and no gathered copy);
-        # a frozen blend renders only these rows (a 640x480 frame: 20k of 307k)
-        pix = torch.randperm(hw, generator=generator)[:cfg.pixels_per_step] if cfg.pixels_per_step < hw else None
         img_px, alpha_px = rendered_pixels(out, pix)                               # [P, Q + S], [P]
         share = 1.0 if pix is None else pix.numel() / hw
 
@@ -339,8 +395,6 @@ class PanopticField(nn.Module):
         zero = img_px.sum() * 0.0
         # Instance: per-frame Hungarian matching of the queries' rendered masks to the 2D masks.
         l_ins = zero
-        if labels is None:
-            labels = self.frame_labels(instance, semantic)
         if instance is not None and q > 0:
             min_px = max(1, int(cfg.min_mask_fraction * hw))
             masks, mask_cls = labels.masks, labels.mask_cls
@@ -384,9 +438,12 @@ class PanopticField(nn.Module):
                     self.same += (both & eq).float()
                     self.apart += (both & ~eq).float()
                 if cfg.spawn and depth is not None:
-                    def drawn(rows, out=out, q=q):      # [Q] mean probability on pixel rows [R]
+                    def drawn(m, prob=prob, target=target):     # [Q] mean probability on mask m's read pixels
+                        n_read = float(target[m].sum())
+                        if n_read == 0:
+                            return None
                         with torch.no_grad():
-                            return rendered_pixels(out, rows)[0][:, :q].mean(0)
+                            return (prob @ target[m]) / n_read
 
                     self._queue_uncovered(masks, match, drawn, depth, K, w2c, pos, f_vis.detach(), mask_cls)
                 info["matched"] = int(match.query_idx.numel())
@@ -410,7 +467,22 @@ class PanopticField(nn.Module):
                                columns)
         min_px = max(1, int(self.cfg.min_mask_fraction * instance.numel()))
         masks, mask_cls = thing_masks(instance, semantic, self.class_ids, self.class_thing, min_px)
-        return FrameLabels(masks, mask_cls, mask_windows(masks).reshape(masks.shape[0], instance.numel()), columns)
+        flat = masks.reshape(masks.shape[0], instance.numel())
+        mask_idx, pixels = torch.nonzero(flat, as_tuple=True)                     # mask by mask
+        offsets = torch.zeros(masks.shape[0] + 1, dtype=torch.long)
+        offsets[1:] = torch.bincount(mask_idx, minlength=masks.shape[0]).cumsum(0)
+        return FrameLabels(masks, mask_cls, mask_windows(masks).reshape(masks.shape[0], instance.numel()), columns,
+                           mask_pixels=pixels, mask_offsets=offsets)
+
+    def sample_pixels(self, width: int, height: int, labels: "FrameLabels",
+                      generator: torch.Generator | None = None) -> torch.Tensor | None:
+        """The pixels [P] a step on a frame with these labels reads (module sample_pixels, seeded by
+        a random pixel of each thing mask); None: every pixel."""
+        cfg = self.cfg
+        if cfg.pixels_per_step >= int(width) * int(height):
+            return None
+        seeds = labels.random_mask_pixels(generator) if cfg.sample_tile > 0 else None
+        return sample_pixels(width, height, cfg.pixels_per_step, cfg.sample_tile, generator, seeds)
 
     def _class_cost(self, prob: torch.Tensor, sem: torch.Tensor, alpha: torch.Tensor,
                     mask_cls: torch.Tensor) -> torch.Tensor | None:

@@ -114,10 +114,28 @@ class FrozenBlend:
     alpha: torch.Tensor
     visible: torch.Tensor        # [V] long surfel indices
     nbytes: int
+    rows: torch.Tensor | None = None   # [R] ascending flat pixel indices of A's rows; None: every pixel
 
     def render(self, feats: torch.Tensor) -> "BlendedPixels":
         """feats [V, C] -> the view's render, evaluated at the pixels asked for (differentiable in feats)."""
         return BlendedPixels(self, feats)
+
+    def at_pixels(self, rows: torch.Tensor) -> "FrozenBlend":
+        """The blend of only the pixels rows [R] (ascending flat indices) over only the surfels they
+        blend: a step that reads a few tiles of the view then gathers, attends and scatters those
+        surfels, not all the view's (PanopticConfig.sample_tile)."""
+        import scipy.sparse
+
+        sub = self.A[rows.numpy()]
+        cols = sub.indices
+        mark = np.zeros(self.A.shape[1], dtype=bool)
+        mark[cols] = True
+        used = np.flatnonzero(mark)
+        column = np.cumsum(mark, dtype=np.int64) - 1          # old column -> new, for the used ones
+        A = scipy.sparse.csr_matrix((sub.data, column[cols].astype(cols.dtype), sub.indptr),
+                                    shape=(sub.shape[0], used.size))
+        return FrozenBlend(A=A, alpha=self.alpha.reshape(-1)[rows], visible=self.visible[torch.from_numpy(used)],
+                           nbytes=0, rows=rows)
 
 
 @dataclass
@@ -128,10 +146,19 @@ class BlendedPixels:
     feats: torch.Tensor
 
     def at(self, rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(features [R, C], alpha [R]) at flat pixel indices rows [R]; None: every pixel in order."""
+        """(features [R, C], alpha [R]) at flat pixel indices rows [R]; None: every pixel in order
+        (every pixel the blend holds, for one made by `at_pixels`)."""
         alpha = self.blend.alpha.reshape(-1)
         if rows is None:
             return _RowBlend.apply(self.feats, self.blend.A), alpha
+        if self.blend.rows is not None:
+            held = self.blend.rows
+            if rows.numel() == held.numel() and torch.equal(rows, held):
+                return _RowBlend.apply(self.feats, self.blend.A), alpha
+            local = torch.searchsorted(held, rows).clamp_max(held.numel() - 1)
+            if not bool((held[local] == rows).all()):
+                raise ValueError("BlendedPixels.at: a pixel outside the rows this blend holds")
+            rows = local
         return _RowBlend.apply(self.feats, self.blend.A[rows.numpy()]), alpha[rows]
 
 
@@ -329,9 +356,18 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
             terms = joint.terms(fr) if joint is not None else {}
             if i not in frame_labels:
                 frame_labels[i] = field.frame_labels(fr.instance, fr.semantic)
-            l_ins, l_sem, _ = field.losses(render, means, vis, fr.instance, fr.semantic, fr.K,
+            pix = field.sample_pixels(fr.width, fr.height, frame_labels[i], generator)
+            step_vis, step_render = vis, render
+            if blend is not None and pix is not None and cfg.sample_tile > 0:
+                # only the surfels the sampled tiles blend take part in this step
+                part = blend.at_pixels(pix)
+                step_vis = part.visible
+
+                def step_render(idx, feats, topk, part=part, render=render):
+                    return part.render(feats) if topk == cfg.topk else render(idx, feats, topk)
+            l_ins, l_sem, _ = field.losses(step_render, means, step_vis, fr.instance, fr.semantic, fr.K,
                                            fr.viewmat, fr.width, fr.height, generator=generator,
-                                           depth=fr.depth, labels=frame_labels[i])
+                                           depth=fr.depth, labels=frame_labels[i], pixels=pix)
             terms["ins"], terms["sem"] = l_ins, l_sem
             checked = {**(joint.params if joint is not None else {}),
                        "semantic": field.semantic, "instance": field.instance}
