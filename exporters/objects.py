@@ -229,11 +229,12 @@ def finish_object(obj: SceneObject, *, views=None, source_textured=None, decimat
     if collision_tolerance is None:
         collision_tolerance = max(default_tolerance(m), 1.5 * resolution if resolution else 0.0)
     t0 = clock.now()
-    dec = decimate_to_budget(m, decimation_budget, seed=seed)
-    cap = obj.measured.face_budget = visual_face_budget(m, dec.budget, obj.measured.faces_before)
+    # the error budget may ask for more faces than an object this size needs (a voxel solid's
+    # staircase, a closing that refined the surface): the face budget wins, its error is kept
+    cap = obj.measured.face_budget = visual_face_budget(m, decimation_budget, obj.measured.faces_before)
+    dec = decimate_to_budget(m, decimation_budget, max_faces=cap, seed=seed)
     if len(dec.mesh.faces) > cap:
-        # the error budget asked for more faces than an object this size needs (a voxel solid's
-        # staircase, a closing that refined the surface): the face budget wins, its error is kept
+        # no closed mesh at the cap itself: twice and four times as many are tried
         dec = decimate_to_count(m, cap, dec, seed=seed)
     clock.add(obj.measured.timings, "decimation", t0)
     m = dec.mesh

@@ -154,6 +154,16 @@ def test_decimation_meets_budget_and_budget_controls_faces():
     fine = decimate_to_budget(s, 0.0008, face_tol=0.0)
     assert len(tight.curve) < len(fine.curve)
     assert fine.faces_after <= tight.faces_after <= 1.15 * fine.faces_after
+    # a face cap: no probe above it; below what the budget needs, the cap's mesh with its error
+    capped = decimate_to_budget(s, 0.0008, max_faces=tight.faces_after // 3)
+    assert max(f for f, _, _ in capped.curve) <= tight.faces_after // 3
+    assert capped.faces_after <= tight.faces_after // 3 and capped.hausdorff > capped.budget
+    assert capped.mesh.is_watertight
+    h, _ = surface_distance(s, capped.mesh)
+    assert h == pytest.approx(capped.hausdorff, rel=0.2)                # the error it reports is its own
+    roomy = decimate_to_budget(s, 0.0008, max_faces=int(1.2 * tight.faces_after))
+    assert max(f for f, _, _ in roomy.curve) <= int(1.2 * tight.faces_after)
+    assert roomy.hausdorff <= roomy.budget and roomy.faces_after <= 1.15 * fine.faces_after
 
 
 # ---------------------------------------------------------------- collision
