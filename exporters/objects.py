@@ -415,7 +415,7 @@ def build_background(mesh, *, views=None, label: str = "background", decimation_
         obj.skip(Reason.REPAIR, f"repair: {rep.reason}")
         return obj
     budget = decimation_budget if decimation_budget is not None else 0.01
-    dec = decimate_to_budget(rep.mesh, budget, seed=seed)
+    dec = decimate_to_budget(rep.mesh, budget, quantile=BACKGROUND_ERROR_QUANTILE, seed=seed)
     m = dec.mesh
     obj.measured.faces_after, obj.measured.decimation_error = int(len(m.faces)), dec.hausdorff
     obj.measured.decimation_mean_error, obj.measured.decimation_budget = dec.mean_error, dec.budget
@@ -433,6 +433,11 @@ def build_background(mesh, *, views=None, label: str = "background", decimation_
     return obj
 
 
+# The visual background's error budget holds for this quantile of the surface sample distances,
+# not their maximum: it is context, not an asset (its colliders come from the undecimated mesh), and
+# a few samples on a thin edge held a 644k-face room at 347k faces (2 cm off at up to 321k); at
+# 0.999 one sample in 1000 may lie beyond the budget
+BACKGROUND_ERROR_QUANTILE = 0.999
 MAX_ATLAS_FACES = 20_000      # above this many faces a mesh is coloured per vertex, not UV-unwrapped
 MAX_BAKE_VIEWS = 16           # views a texture is baked from (spread over those that see the object)
 

@@ -9,8 +9,9 @@ from psimap import PsimapError
 from psimap.exporters import collision as C
 from psimap.exporters import physics as P
 from psimap.exporters import texture as T
-from psimap.exporters.decimate import decimate_to_budget, surface_distance
+from psimap.exporters.decimate import decimate_to_budget, distance_to_surface, surface_distance
 from psimap.exporters.repair import repair_mesh
+from psimap.transforms import sample_surface
 
 
 # ---------------------------------------------------------------- physics
@@ -161,6 +162,12 @@ def test_decimation_meets_budget_and_budget_controls_faces():
     assert capped.mesh.is_watertight
     h, _ = surface_distance(s, capped.mesh)
     assert h == pytest.approx(capped.hausdorff, rel=0.2)                # the error it reports is its own
+    # the budget held by a quantile of the sample distances (the background's): fewer faces, the
+    # reported error still the maximum, over the budget where the few worst samples are
+    q99 = decimate_to_budget(s, 0.0008, quantile=0.99)
+    assert q99.faces_after < 0.8 * tight.faces_after and q99.hausdorff > q99.budget
+    d = distance_to_surface(q99.mesh, sample_surface(s, 20000, 5, with_vertices=True))
+    assert np.quantile(d, 0.99) <= q99.budget < d.max()
     roomy = decimate_to_budget(s, 0.0008, max_faces=int(1.2 * tight.faces_after))
     assert max(f for f, _, _ in roomy.curve) <= int(1.2 * tight.faces_after)
     assert roomy.hausdorff <= roomy.budget and roomy.faces_after <= 1.15 * fine.faces_after
