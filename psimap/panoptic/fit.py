@@ -340,6 +340,15 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                 blends[i] = blend
                 if blend is not None:
                     visible[i] = blend.visible
+
+            field.zero_grad()
+            # the geometry's terms first: they draw from `generator` before the field does
+            terms = joint.terms(fr) if joint is not None else {}
+            if i not in frame_labels:
+                frame_labels[i] = field.frame_labels(fr.instance, fr.semantic)
+            pix = field.sample_pixels(fr.width, fr.height, frame_labels[i], generator)
+            if blend is not None and pix is not None and cfg.sample_tile > 0:
+                blend = blend.at_pixels(pix)   # only the surfels the sampled tiles blend take part
             if blend is not None:
                 vis = blend.visible
 
@@ -351,21 +360,7 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                                  fr.viewmat, fr.K, fr.width, fr.height, features=feats, topk=topk,
                                  backend=backend)
 
-            field.zero_grad()
-            # the geometry's terms first: they draw from `generator` before the field does
-            terms = joint.terms(fr) if joint is not None else {}
-            if i not in frame_labels:
-                frame_labels[i] = field.frame_labels(fr.instance, fr.semantic)
-            pix = field.sample_pixels(fr.width, fr.height, frame_labels[i], generator)
-            step_vis, step_render = vis, render
-            if blend is not None and pix is not None and cfg.sample_tile > 0:
-                # only the surfels the sampled tiles blend take part in this step
-                part = blend.at_pixels(pix)
-                step_vis = part.visible
-
-                def step_render(idx, feats, topk, part=part, render=render):
-                    return part.render(feats) if topk == cfg.topk else render(idx, feats, topk)
-            l_ins, l_sem, _ = field.losses(step_render, means, step_vis, fr.instance, fr.semantic, fr.K,
+            l_ins, l_sem, _ = field.losses(render, means, vis, fr.instance, fr.semantic, fr.K,
                                            fr.viewmat, fr.width, fr.height, generator=generator,
                                            depth=fr.depth, labels=frame_labels[i], pixels=pix)
             terms["ins"], terms["sem"] = l_ins, l_sem
