@@ -39,36 +39,60 @@ def unwrap(mesh):
     return np.asarray(mesh.vertices, np.float64)[vmap], faces.astype(np.int64), uv.astype(np.float64), vmap
 
 
-def rasterize_uv(faces: np.ndarray, uv: np.ndarray, size: int):
+def rasterize_uv(faces: np.ndarray, uv: np.ndarray, size: int, chunk: int = 1 << 20):
     """Texels covered by UV triangles.
 
     faces [F, 3], uv [V, 2] in [0, 1] (v up). Returns (rows [P], cols [P], face [P], bary [P, 3]).
-    Texel (r, c) has centre uv = ((c + .5)/size, 1 - (r + .5)/size).
+    Texel (r, c) has centre uv = ((c + .5)/size, 1 - (r + .5)/size). The candidate texels (each
+    face's bounding box) are tested about `chunk` at a time, per coordinate, with the per-face
+    terms computed once: a 1024^2 atlas has ~2 million candidates, and whole-atlas [P, 2]
+    temporaries cost more in page faults than in arithmetic.
     """
-    t = uv[faces] * size                                # [F, 3, 2] in texel units (x right, y up)
+    faces = np.asarray(faces, np.int64)
+    t = np.asarray(uv, np.float64)[faces] * size         # [F, 3, 2] in texel units (x right, y up)
     lo = np.floor(t.min(axis=1) - 0.5).astype(np.int64).clip(0, size - 1)
     hi = np.ceil(t.max(axis=1) - 0.5).astype(np.int64).clip(0, size - 1)
     nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
     counts = nx * ny
-    fid = np.repeat(np.arange(len(faces)), counts)
-    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    cx = lo[fid, 0] + local % nx[fid]
-    cy = lo[fid, 1] + local // nx[fid]
-    p = np.stack([cx + 0.5, cy + 0.5], axis=1)
-    a, b, c = t[fid, 0], t[fid, 1], t[fid, 2]
-    v0, v1, v2 = b - a, c - a, p - a
-    d00 = (v0 * v0).sum(1); d01 = (v0 * v1).sum(1); d11 = (v1 * v1).sum(1)
-    d20 = (v2 * v0).sum(1); d21 = (v2 * v1).sum(1)
+    # per face: the edge vectors from vertex a and the dot products of barycentric coordinates
+    ax, ay = t[:, 0, 0], t[:, 0, 1]
+    e0x, e0y = t[:, 1, 0] - ax, t[:, 1, 1] - ay
+    e1x, e1y = t[:, 2, 0] - ax, t[:, 2, 1] - ay
+    d00 = e0x * e0x + e0y * e0y
+    d01 = e0x * e1x + e0y * e1y
+    d11 = e1x * e1x + e1y * e1y
     den = d00 * d11 - d01 * d01
     ok = np.abs(den) > 1e-12
     den = np.where(ok, den, 1.0)
-    w1 = (d11 * d20 - d01 * d21) / den
-    w2 = (d00 * d21 - d01 * d20) / den
-    w0 = 1 - w1 - w2
-    eps = 1e-6
-    inside = ok & (w0 >= -eps) & (w1 >= -eps) & (w2 >= -eps)
-    rows = size - 1 - cy[inside]
-    return rows, cx[inside], fid[inside], np.stack([w0, w1, w2], 1)[inside]
+    out = []
+    ends = np.cumsum(counts)
+    first = 0
+    while first < len(faces):
+        # faces [first, last) hold about `chunk` candidates (at least one face)
+        base = ends[first] - counts[first]
+        last = max(first + 1, int(np.searchsorted(ends, base + chunk, side="right")))
+        f = np.arange(first, last)
+        c = counts[f]
+        fid = np.repeat(f, c)
+        local = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
+        nxf = nx[fid]
+        cx = lo[fid, 0] + local % nxf
+        cy = lo[fid, 1] + local // nxf
+        v2x, v2y = (cx + 0.5) - ax[fid], (cy + 0.5) - ay[fid]
+        d20 = v2x * e0x[fid] + v2y * e0y[fid]
+        d21 = v2x * e1x[fid] + v2y * e1y[fid]
+        dn = den[fid]
+        w1 = (d11[fid] * d20 - d01[fid] * d21) / dn
+        w2 = (d00[fid] * d21 - d01[fid] * d20) / dn
+        w0 = 1 - w1 - w2
+        eps = 1e-6
+        inside = ok[fid] & (w0 >= -eps) & (w1 >= -eps) & (w2 >= -eps)
+        out.append((size - 1 - cy[inside], cx[inside], fid[inside],
+                    np.stack([w0[inside], w1[inside], w2[inside]], 1)))
+        first = last
+    if not out:
+        return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
+    return tuple(np.concatenate(parts) for parts in zip(*out))
 
 
 def bake_from_views(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, views: list[View],
@@ -89,13 +113,17 @@ def bake_from_views(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, vie
     wsum = np.zeros(len(pos))
     for v in views:
         xi, yi, z, vis = _depth_tested_pixels(pos, v, depth_tolerance)
-        ray = pos - v.c2w[:3, 3]
+        # only the texels this view sees are weighed (the others add 0: most of an atlas is out of
+        # any one view's sight)
+        idx = np.flatnonzero(vis)
+        ray = pos[idx] - v.c2w[:3, 3]
         ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-20)
-        cos = -(ray * nrm).sum(1)
-        vis &= cos > 0.1
-        w = np.where(vis, cos ** 4 / np.maximum(z, 1e-3) ** 2, 0.0)     # grazing / far views count less
-        acc += w[:, None] * v.rgb[yi, xi, :3]
-        wsum += w
+        cos = -(ray * nrm[idx]).sum(1)
+        facing = cos > 0.1
+        idx, cos = idx[facing], cos[facing]
+        w = cos ** 4 / np.maximum(z[idx], 1e-3) ** 2                     # grazing / far views count less
+        acc[idx] += w[:, None] * v.rgb[yi[idx], xi[idx], :3]
+        wsum[idx] += w
     img = np.zeros((size, size, 3))
     filled = np.zeros((size, size), bool)
     if fallback_vertex_rgb is not None:

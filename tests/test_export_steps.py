@@ -312,6 +312,49 @@ def test_bake_from_views_colours_seen_texels_only():
     assert cov2 == 0.0 and img2.max() == 0
 
 
+
+def test_rasterize_uv_covers_each_triangle_once_whatever_the_chunk():
+    """Two triangles sharing a diagonal tile a 1 x 0.5 rectangle of the atlas: each of its 32 x 16
+    texel centres is covered once (none lies on the diagonal), barycentrics give back the texel
+    centre; testing 7 candidates at a time gives the same texels in the same order as all at once."""
+    uv = np.array([[0, 0], [1, 0], [1, 0.5], [0, 0.5]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    rows, cols, fid, bary = T.rasterize_uv(faces, uv, 32)
+    assert len(rows) == len(set(zip(rows.tolist(), cols.tolist()))) == 32 * 16
+    assert rows.min() == 16 and rows.max() == 31 and cols.min() == 0 and cols.max() == 31
+    np.testing.assert_allclose(bary.sum(1), 1.0, atol=1e-12)
+    centre = np.stack([(cols + 0.5) / 32, 1 - (rows + 0.5) / 32], 1)
+    np.testing.assert_allclose(np.einsum("pk,pkd->pd", bary, uv[faces[fid]]), centre, atol=1e-12)
+    for got, want in zip(T.rasterize_uv(faces, uv, 32, chunk=7), (rows, cols, fid, bary)):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_bake_from_views_weighs_nearer_views_more():
+    """Two views straight above a box's top face, 0.9 m and 1.9 m from it, one red, one blue: a
+    texel's colour is their mix weighted by cos^4 / z^2, red (1.9 / 0.9)^2 = 4.46 times the blue."""
+    box = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
+    v, f, uv, _ = T.unwrap(box)
+    views = []
+    for height, channel in ((1.0, 0), (2.0, 2)):
+        K, c2w = _cam_looking_down(height=height)
+        ys, xs = np.mgrid[0:64, 0:64]
+        d = height - 0.1
+        inside = (np.abs((xs - K[0, 2]) / K[0, 0] * d) < 0.1) & (np.abs((ys - K[1, 2]) / K[1, 1] * d) < 0.1)
+        rgb = np.zeros((64, 64, 3), np.float32)
+        rgb[..., channel] = 1.0
+        views.append(T.View(rgb, np.where(inside, d, 0).astype(np.float32), K, c2w))
+    img, _ = T.bake_from_views(v, f, uv, views, 64, fallback_vertex_rgb=np.zeros((len(v), 3)))
+    rows, cols, fid, bary = T.rasterize_uv(f, uv, 64)
+    pos = np.einsum("pk,pkd->pd", bary, v[f[fid]])
+    top = np.asarray(trimesh.Trimesh(v, f, process=False).face_normals)[fid, 2] > 0.9
+    # texels off the optical axis see both cameras at slightly different angles: the centre ones
+    centre = top & (np.abs(pos[:, :2]).max(1) < 0.02)
+    red = 1.9 ** 2 / (1.9 ** 2 + 0.9 ** 2)
+    assert centre.sum() > 10
+    np.testing.assert_allclose(img[rows[centre], cols[centre], 0], 255 * red, atol=3)
+    np.testing.assert_allclose(img[rows[centre], cols[centre], 2], 255 * (1 - red), atol=3)
+
+
 def test_vertex_colors_from_views_depth_tests_each_vertex():
     K, c2w = _cam_looking_down()            # camera 1 m above the origin, looking down -z
     h = w = 64
