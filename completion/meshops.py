@@ -109,6 +109,22 @@ def from_manifold(man):
     return as_trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts))
 
 
+def cached_on(mesh, key, build):
+    """build() once per content of `mesh`: kept in the mesh's own trimesh cache, which trimesh
+    empties when its vertices or faces change (an edited mesh is never served a stale value). An
+    export completes each object against the same background and neighbours: their ray-casting
+    index and solids were built again for every object (room, 12 completions: 3.8 s of BVH builds
+    for 13 rays each)."""
+    cache = getattr(mesh, "_cache", None)
+    if cache is None:
+        return build()
+    held = cache[key]
+    if held is None:
+        held = (build(),)           # a tuple: build() may return None
+        cache[key] = held
+    return held[0]
+
+
 def raycasting_scene(mesh):
     import open3d as o3d
 

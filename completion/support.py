@@ -49,7 +49,9 @@ def planes_from_background(background, points: np.ndarray, reach: float,
     (TSDF) surface's single facets tilt with the noise; near-duplicates are merged."""
     import open3d as o3d
 
-    from .meshops import raycasting_scene
+    from scipy.spatial import cKDTree
+
+    from .meshops import cached_on, raycasting_scene
 
     if background is None or len(background.faces) == 0:
         return []
@@ -60,13 +62,13 @@ def planes_from_background(background, points: np.ndarray, reach: float,
     dirs = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]] + [[0, 0, -1]] * 9
     origins, dirs = np.asarray(origins, dtype=np.float64), np.asarray(dirs, dtype=np.float64)
     rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-    hit = raycasting_scene(background).cast_rays(o3d.core.Tensor(rays))
+    # one index of the background for every object it supports
+    scene = cached_on(background, "psimap.raycasting_scene", lambda: raycasting_scene(background))
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
     t = hit["t_hit"].numpy()
     normals = hit["primitive_normals"].numpy().astype(np.float64)
-    from scipy.spatial import cKDTree
-
     verts = np.asarray(background.vertices, dtype=np.float64)
-    tree = cKDTree(verts)
+    tree = cached_on(background, "psimap.vertex_tree", lambda: cKDTree(verts))
     planes: list[tuple[np.ndarray, float]] = []
     for k in range(len(dirs)):
         if not (np.isfinite(t[k]) and t[k] <= reach):

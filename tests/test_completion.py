@@ -112,7 +112,45 @@ def test_box_between_wall_and_neighbour_stays_clear_of_both():
     assert chamfer(res.mesh, gt) < 0.003
 
 
-def test_fully_observed_object_is_returned_unchanged():
+def test_neighbour_solids_are_kept_on_the_neighbour_until_it_changes():
+    """An export completes every object against the same neighbours and background: their solids
+    and ray-casting index are built once (cached_on, in the mesh's own trimesh cache), a second
+    completion gives the same mesh, and a mesh edited in place is built again, never served stale."""
+    from psimap.completion.meshops import cached_on
+
+    calls = []
+    m = trimesh.creation.box()
+
+    def right_side():
+        calls.append(1)
+        return float(m.vertices[:, 0].max())
+    assert cached_on(m, "k", right_side) == 0.5 and cached_on(m, "k", right_side) == 0.5 and len(calls) == 1
+    m.apply_translation([1.0, 0, 0])
+    assert cached_on(m, "k", right_side) == 1.5 and len(calls) == 2
+    assert cached_on(m, "none", lambda: calls.append(1)) is None and cached_on(m, "none", right_side) is None
+    assert len(calls) == 3
+
+    y0 = 0.1
+    gt = trimesh.creation.box([0.1, 0.06, 0.12])
+    gt.apply_translation([0, y0 - 0.03, 0.06])
+    neighbour = trimesh.creation.box([0.05, 0.06, 0.12])
+    neighbour.apply_translation([0.075, y0 - 0.03, 0.06])
+    scan = trimesh.convex.convex_hull(seen_side(neighbour, [0.3, -1, 0.6]))
+    scan.faces = scan.faces[1:]             # open: its obstacle is a voxel solid, not itself
+    ctx = Context(points=seen_side(gt, [-0.5, -1, 0.6], noise=0.0005), voxel_size=VOXEL,
+                  support_planes=TABLE, background=_wall(y0), neighbours=[scan])
+    a, b = complete(None, ctx), complete(None, ctx)
+    assert a.completed and np.array_equal(a.mesh.vertices, b.mesh.vertices)
+    held = scan._cache[("psimap.obstacle", 0.5 * VOXEL)][0]
+    assert held is not None and held[0].is_watertight
+    scan.apply_translation([0.02, 0, 0])    # moved in place (still near): its old solid must not be used
+    assert scan._cache[("psimap.obstacle", 0.5 * VOXEL)] is None
+    complete(None, ctx)
+    moved = scan._cache[("psimap.obstacle", 0.5 * VOXEL)][0][0]
+    np.testing.assert_allclose(moved.bounds - held[0].bounds, [[0.02, 0, 0], [0.02, 0, 0]], atol=0.5 * VOXEL)
+
+
+
     gt = trimesh.creation.box([0.1, 0.08, 0.06])
     pts = sample_surface(gt, 0.003)
     res = complete(gt, Context(points=pts, voxel_size=VOXEL))
