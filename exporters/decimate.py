@@ -150,6 +150,41 @@ def decimate_to_count(mesh, faces: int, fallback: DecimationResult, *, samples: 
                             fallback.curve + [(len(out.faces), haus, mean)])
 
 
+def _floor(lo: float, cand, e: float) -> float:
+    """The bracket's lower end after a probe that missed the budget: the log face count the
+    simplifier reached when it stopped short of the one asked (a 644k-face room with open borders
+    stays at 28k faces whatever fewer is asked: three probes below it were three whole
+    simplifications of the same 28k-face result)."""
+    return max(lo, float(np.log(len(cand.faces)))) if np.isfinite(e) and len(cand.faces) else lo
+
+
+def next_probe(lo: float, hi: float, tried: list, budget: float, moved: str | None,
+               face_tol: float) -> float:
+    """The next log face count to try inside the bracket (lo, hi) of log face counts (lo misses
+    the budget, hi meets it). tried: (log face count, error) of the probes so far, in order.
+
+    A simplification's error falls about as a power of its face count, so the count where it meets
+    the budget is found by the secant through the last two probes on log(error) against log(count)
+    (bisection before there are two, or when they do not fall), then stepped half the face
+    tolerance past it, away from the end the last probe moved, so that the next probe tends to
+    close the bracket from the other side; kept a tenth of the bracket from either end. Plain
+    bisection took 6-8 probes of a 644k-face room (each a whole simplification and two distance
+    passes); the secant through the bracket's ends crept along its flat error curve.
+    """
+    w = hi - lo
+    pts = [(n, e) for n, e in tried if np.isfinite(e) and e > 0]
+    if len(pts) < 2 or not budget > 0:
+        return 0.5 * (lo + hi)
+    (n1, e1), (n2, e2) = pts[-2], pts[-1]
+    slope = (np.log(e2) - np.log(e1)) / (n2 - n1) if n2 != n1 else 0.0
+    if not slope < 0:
+        return 0.5 * (lo + hi)
+    guess = n2 + (np.log(budget) - np.log(e2)) / slope
+    nudge = 0.5 * np.log1p(face_tol)
+    guess += {"hi": -nudge, "lo": nudge}.get(moved, 0.0)
+    return float(np.clip(guess, lo + 0.1 * w, hi - 0.1 * w))
+
+
 def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32,
                        max_faces: int | None = None, quantile: float = 1.0, samples: int = DEFAULT_SAMPLES,
                        seed: int = 0, max_iters: int = 7, face_tol: float = 0.15) -> DecimationResult:
@@ -178,6 +213,7 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
     ref_pts = sample_surface(mesh, samples, seed, with_vertices=True)
     to_mesh = surface_distance_query(mesh)
     curve = []
+    tried = []                                  # (log face count, judged error) of every valid probe
 
     method = "auto"
 
@@ -196,15 +232,17 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
         curve.append((int(len(cand.faces)), h, m))
         # (candidate, the error the budget judges, mean, Hausdorff)
         e = float(np.quantile(np.concatenate([d1, d2]), quantile)) if quantile < 1.0 else h
+        tried.append((float(np.log(len(cand.faces))), e))
         return cand, e, m, h
 
-    # bisection on log(face count): error grows (almost) monotonically as faces shrink
+    # a bracket on log(face count): error grows (almost) monotonically as faces shrink
     lo, hi = np.log(min_faces), np.log(n0)      # lo: maybe too coarse; hi: the input itself
     cand, e, m, h = measure(min_faces)
     if e <= budget:
         best = DecimationResult(cand, n0, len(cand.faces), h, m, budget)
         best.curve = sorted(curve)
         return best
+    lo = _floor(lo, cand, e)
     if max_faces is not None and min_faces < max_faces < n0:
         # "auto" whatever the first probe chose: fast-simplification that broke the mesh at
         # min_faces can keep it closed at the cap (a room's box: 24 mm at the cap by MeshLab, 5 mm fast)
@@ -215,18 +253,19 @@ def decimate_to_budget(mesh, budget: float | None = None, *, min_faces: int = 32
                 best.curve = sorted(curve)
                 return best
             hi = np.log(max_faces)
+    moved = None                                  # the end the last probe moved
     for _ in range(max_iters):
         if hi - lo <= np.log1p(face_tol) and best.faces_after < n0:
             break
-        mid = 0.5 * (lo + hi)
+        mid = next_probe(lo, hi, tried, budget, moved, face_tol)
         count = int(round(np.exp(mid)))
         if count >= np.exp(hi) * 0.97:
             break
         cand, e, m, h = measure(count)
         if e <= budget:
-            hi = mid
+            hi, moved = mid, "hi"
             best = DecimationResult(cand, n0, len(cand.faces), h, m, budget)
         else:
-            lo = mid
+            lo, moved = _floor(mid, cand, e), "lo"
     best.curve = sorted(curve)
     return best

@@ -138,6 +138,31 @@ def test_repair_closes_open_bottom_and_drops_a_nonmanifold_fin():
 
 
 # ---------------------------------------------------------------- decimation
+def test_decimation_probe_follows_the_error_power_law_and_its_floor():
+    """next_probe: on errors that fall as a power of the face count it lands on the count that meets
+    the budget (stepped half the face tolerance away from the end the last probe moved), inside
+    the bracket; with no fall it bisects. _floor: a probe the simplifier could not take below N faces
+    raises the bracket's low end to N."""
+    from psimap.exporters.decimate import _floor, next_probe
+
+    def err(n):
+        return 3.0 * n ** -1.5
+    tried = [(np.log(100), err(100)), (np.log(400), err(400))]
+    lo, hi = np.log(400), np.log(5000)
+    assert np.exp(next_probe(lo, hi, tried, err(1000), None, 0.15)) == pytest.approx(1000, rel=1e-9)
+    assert np.exp(next_probe(lo, hi, tried, err(1000), "lo", 0.15)) == pytest.approx(1000 * 1.15 ** 0.5, rel=1e-9)
+    assert np.exp(next_probe(lo, hi, tried, err(1000), "hi", 0.15)) == pytest.approx(1000 / 1.15 ** 0.5, rel=1e-9)
+    far = next_probe(lo, hi, tried, err(10 ** 6), None, 0.15)     # beyond the bracket: a tenth inside it
+    assert far == pytest.approx(hi - 0.1 * (hi - lo))
+    flat = [(np.log(100), 0.01), (np.log(400), 0.01)]
+    assert next_probe(lo, hi, flat, 0.001, None, 0.15) == pytest.approx(0.5 * (lo + hi))
+    assert next_probe(lo, hi, tried[:1], err(1000), None, 0.15) == pytest.approx(0.5 * (lo + hi))
+    stuck = trimesh.creation.icosphere(subdivisions=3)                             # 1280 faces
+    assert _floor(np.log(32), stuck, 0.1) == pytest.approx(np.log(1280))
+    assert _floor(np.log(32), stuck, np.inf) == np.log(32)                         # a broken probe says nothing
+    assert _floor(np.log(2000), stuck, 0.1) == np.log(2000)
+
+
 def test_decimation_meets_budget_and_budget_controls_faces():
     s = trimesh.creation.icosphere(subdivisions=4, radius=0.1)       # 5120 faces
     loose = decimate_to_budget(s, 0.004)
@@ -151,10 +176,12 @@ def test_decimation_meets_budget_and_budget_controls_faces():
     # a too-tight budget keeps the input
     same = decimate_to_budget(s, 1e-7)
     assert same.faces_after == 5120
-    # the bisection stops once its bracket is within face_tol: fewer probes, a count within it
+    # the search stops once its bracket is within face_tol: a probe that missed the budget lies
+    # within face_tol below the count it returns (face_tol 0 searches to the iteration cap)
+    missed = max(f for f, h, _ in tight.curve if h > tight.budget)
+    assert missed < tight.faces_after <= 1.15 * missed
     fine = decimate_to_budget(s, 0.0008, face_tol=0.0)
-    assert len(tight.curve) < len(fine.curve)
-    assert fine.faces_after <= tight.faces_after <= 1.15 * fine.faces_after
+    assert fine.hausdorff <= fine.budget and len(tight.curve) <= 9
     # a face cap: no probe above it; below what the budget needs, the cap's mesh with its error
     capped = decimate_to_budget(s, 0.0008, max_faces=tight.faces_after // 3)
     assert max(f for f, _, _ in capped.curve) <= tight.faces_after // 3
@@ -171,6 +198,8 @@ def test_decimation_meets_budget_and_budget_controls_faces():
     roomy = decimate_to_budget(s, 0.0008, max_faces=int(1.2 * tight.faces_after))
     assert max(f for f, _, _ in roomy.curve) <= int(1.2 * tight.faces_after)
     assert roomy.hausdorff <= roomy.budget and roomy.faces_after <= 1.15 * fine.faces_after
+    missed = max(f for f, h, _ in roomy.curve if h > roomy.budget)      # the cap topped the bracket
+    assert missed < roomy.faces_after <= 1.16 * missed          # (the counts asked, not reached, close it)
 
 
 # ---------------------------------------------------------------- collision
