@@ -72,8 +72,13 @@ def scale_intrinsics(K, s: float) -> np.ndarray:
 def transform_points(points, T):
     """points [..., 3] mapped by the rigid transform T [4, 4] (e.g. camera-to-world): p @ R.T + t.
 
-    Operators only: numpy arrays and torch tensors (same dtype as T) alike.
+    Operators only: numpy arrays and torch tensors (same dtype as T) alike. A numpy [P, 3] @ [3, 3]
+    product goes to OpenBLAS, whose worker threads spin-wait for a CPU: on a busy 2-core machine
+    700k points took 180 ms a call and 9 s of an export's texture bake (the same einsum: 12 ms, one
+    thread, equal to 1 ulp).
     """
+    if isinstance(points, np.ndarray):
+        return np.einsum("pj,ij->pi", points.reshape(-1, 3), T[:3, :3]).reshape(points.shape) + T[:3, 3]
     return points @ T[:3, :3].T + T[:3, 3]
 
 
