@@ -129,6 +129,11 @@ def test_neighbour_solids_are_kept_on_the_neighbour_until_it_changes():
     assert cached_on(m, "k", right_side) == 1.5 and len(calls) == 2
     assert cached_on(m, "none", lambda: calls.append(1)) is None and cached_on(m, "none", right_side) is None
     assert len(calls) == 3
+    # to_manifold too: the same Manifold while the mesh stays, the moved solid after an edit
+    first = to_manifold(m)
+    assert to_manifold(m) is first and first.bounding_box()[0] == pytest.approx(0.5)
+    m.apply_translation([0.25, 0, 0])
+    assert to_manifold(m).bounding_box()[0] == pytest.approx(0.75)
 
     y0 = 0.1
     gt = trimesh.creation.box([0.1, 0.06, 0.12])
