@@ -211,3 +211,102 @@ def test_the_space_over_a_top_under_a_thing_is_the_things():
     assert out.bounds[1, 2] == pytest.approx(0.72 + 0.01, abs=2e-3)          # the top stays, the rise goes
     assert out.volume == pytest.approx(slab.volume + 0.16 * 0.16 * 0.01, rel=0.02)
     assert clear_above_top(slab, top, [far])[1] == []
+
+
+# ---- the static world's speed-ups give the plain computation's floats (issue #20) ------------------
+def _plain_split(points, areas, *, cell, min_area, depth=0):
+    """split_footprint as first written: every cut's two sides measured from scratch, each side's
+    hull and gap measured again when it is split."""
+    from psimap.exporters import environment as E
+
+    poly = E._hull_2d(points)
+    observed = float(areas.sum())
+    if E._polygon_area(poly) <= 0 or observed < min_area:
+        return []
+    radius, gap = E._largest_gap(points, poly, cell)
+    if radius < E.GAP_RADIUS or depth >= E.MAX_SPLIT_DEPTH:
+        return [(poly, observed)]
+    c = points.mean(axis=0)
+    axes = np.linalg.eigh(np.cov((points - c).T))[1].T
+    best = None
+    for ax in axes:
+        t_pts, t_gap = points @ ax, gap @ ax
+        for cut in (t_gap.min() - 0.5 * cell, t_gap.max() + 0.5 * cell):
+            side = t_pts < cut
+            if side.all() or not side.any():
+                continue
+            worst = max(E._largest_gap(points[s], E._hull_2d(points[s]), cell)[0] if s.sum() >= 3 else 0.0
+                        for s in (side, ~side))
+            if best is None or worst < best[0]:
+                best = (worst, side)
+    if best is None:
+        return [(poly, observed)]
+    out = []
+    for s in (best[1], ~best[1]):
+        out += _plain_split(points[s], areas[s], cell=cell, min_area=min_area, depth=depth + 1)
+    return out
+
+
+def _shape_points(boxes, holes=(), step=0.01, seed=0):
+    """Plan-view sample points [n, 2] (a jittered grid of `step`) covering the union of boxes
+    (x0, x1, y0, y1) minus the holes, and their areas [n]."""
+    rng = np.random.default_rng(seed)
+    x0, x1 = min(b[0] for b in boxes), max(b[1] for b in boxes)
+    y0, y1 = min(b[2] for b in boxes), max(b[3] for b in boxes)
+    g = np.stack(np.meshgrid(np.arange(x0, x1 + 1e-9, step), np.arange(y0, y1 + 1e-9, step), indexing="ij"), -1)
+    g = g.reshape(-1, 2) + rng.uniform(-0.2, 0.2, (g.size // 2, 2)) * step
+
+    def within(b):
+        return (g[:, 0] >= b[0]) & (g[:, 0] <= b[1]) & (g[:, 1] >= b[2]) & (g[:, 1] <= b[3])
+
+    keep = np.any([within(b) for b in boxes], axis=0) & ~np.any([within(h) for h in holes] or [np.zeros(len(g), bool)],
+                                                                 axis=0)
+    return g[keep], np.full(int(keep.sum()), step * step)
+
+
+@pytest.mark.parametrize("boxes,holes", [
+    ([(0, 1.0, 0, 0.3), (0, 0.3, 0, 1.0)], ()),                            # an L-shaped counter
+    ([(0, 3.0, 0, 2.5)], [(1.05, 1.95, -1, 2.0)]),                        # a wall, a door in its middle
+    ([(0, 3.0, 0, 2.5)], [(0.4, 1.2, -1, 2.0), (1.8, 2.6, -1, 2.0)]),     # two doors: cuts of equal gaps
+    ([(0, 1.2, 0, 0.3), (0, 0.3, 0, 1.2), (0.9, 1.2, 0, 1.2)], ()),       # a U: split twice
+])
+def test_split_footprint_is_the_plain_split(boxes, holes):
+    """split_footprint hands each side's hull and gap, measured for the winning cut, down to that
+    side, and stops measuring a cut that cannot win: the pieces are the plain computation's, bit for
+    bit, and a measurement reused for the wrong side (or a winner lost to the pruning) shows."""
+    from psimap.exporters.environment import split_footprint
+
+    pts, areas = _shape_points(boxes, holes)
+    fast = split_footprint(pts, areas, cell=0.02, min_area=0.01)
+    plain = _plain_split(pts, areas, cell=0.02, min_area=0.01)
+    assert len(plain) >= 2                      # the shape was split
+    assert len(fast) == len(plain)
+    for (p, a), (q, b) in zip(fast, plain):
+        assert np.array_equal(p, q) and a == b
+
+
+def test_direction_sums_are_numpys_floats():
+    """The window mass, the settled direction's weighted sum, the face centres and the column
+    extremes are numpy's own expressions to the bit (order of addition, signed zeros)."""
+    from psimap.exporters import environment as E
+
+    rng = np.random.default_rng(3)
+    # weights over 16 decades: a sum in another order rounds differently
+    w = rng.uniform(0.5, 1.0, 20000) * 10.0 ** rng.integers(-8, 8, 20000)
+    ang = np.radians(rng.choice([0.0, 90.0, 180.0, 270.0], 20000) + rng.normal(0, 8, 20000))
+    d = np.stack([np.cos(ang), np.sin(ang)], 1)
+    d[:50] = -0.0
+    probes = np.stack([np.cos(a := np.radians(np.arange(0.0, 360.0, 2.5))), np.sin(a)], 1)
+    dots = d @ probes.T
+    cos_tol = np.cos(np.radians(12.0))
+    mass = ((dots >= cos_tol) * w[:, None]).sum(0)
+    assert np.array_equal(E._window_mass(dots, cos_tol, w).view(np.uint64), mass.view(np.uint64))
+    for sel in (slice(None), slice(0, 50), slice(0, 0)):
+        ref = (d[sel] * w[sel, None]).sum(0)
+        assert np.array_equal(E._weighted_column_sum(d[sel], w[sel]).view(np.uint64), ref.view(np.uint64))
+    t = rng.choice([-0.0, 0.0, 1e-300, -1.0, 3.3], (5000, 3, 3))
+    t = np.concatenate([t, rng.normal(size=(5000, 3, 3)) * 10.0 ** rng.integers(-9, 9, (5000, 3, 3))])
+    assert np.array_equal(E._face_centres(t).view(np.uint64), t.mean(axis=1).view(np.uint64))
+    ij = rng.integers(-50, 50, (1000, 2))
+    assert np.array_equal(E._column_max(ij), ij.max(axis=0)) and E._column_max(ij).dtype == ij.dtype
+    assert np.array_equal(E._column_min(t[:, 0]), t[:, 0].min(axis=0))
