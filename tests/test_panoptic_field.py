@@ -456,3 +456,36 @@ def test_frozen_blend_renders_the_pixels_asked_for_as_the_renderer_does():
     with pytest.raises(ValueError, match="outside the rows"):
         part.render(f_part).at(torch.tensor([int(torch.ones(v.width * v.height).index_fill(
             0, rows_sorted, 0).nonzero()[0])]))
+
+
+def test_frustum_candidates_hold_every_visible_surfel():
+    """The cheap frustum test (no projection) keeps every surfel `visible_surfels` keeps, behind-,
+    near-, far-, border- and camera-plane-crossing ones included, drops what lies clearly outside,
+    and the frozen blend made from it is the one made from the visible set, bit for bit."""
+    from psimap.panoptic.fit import frozen_blend, frustum_candidates, visible_surfels
+    from psimap.render.api import native_available
+
+    g = torch.Generator().manual_seed(3)
+    n = 20000
+    means = torch.rand(n, 3, generator=g) * torch.tensor([12.0, 12.0, 12.0]) - torch.tensor([6.0, 6.0, 2.0])
+    scales = torch.exp(torch.rand(n, 2, generator=g) * np.log(500.0)) * 1e-3          # 1 mm .. 0.5 m
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1)
+    opac = torch.full((n,), 0.9)
+    K = torch.tensor([[100.0, 0, 80.0], [0, 100.0, 60.0], [0, 0, 1.0]])
+    w2c = torch.eye(4)
+    vis = visible_surfels(means, quats, scales, opac, w2c, K, 160, 120)
+    cand = frustum_candidates(means, scales, w2c, K, 160, 120)
+    assert 500 < vis.numel() <= cand.numel() < 0.5 * n
+    assert bool(torch.isin(vis, cand).all())
+    behind = means[:, 2] < -0.6                                 # wholly behind the camera
+    # well right of the frustum's edge (u <= 160 is x <= 0.8 z), disks under 0.3 m across and
+    # wholly in front of the camera (one reaching behind it is kept: its pixel box is the image)
+    small = scales.max(-1).values < 0.1
+    aside = (means[:, 0] > means[:, 2].clamp_min(0) * 0.9 + 1.6) & small & (means[:, 2] > 0.4)
+    assert int(aside.sum()) > 100
+    assert not bool(torch.isin(torch.nonzero(behind | aside).flatten(), cand).any())
+    if native_available():
+        a = frozen_blend(means, quats, scales, opac, vis, w2c, K, 160, 120, topk=4)
+        b = frozen_blend(means, quats, scales, opac, cand, w2c, K, 160, 120, topk=4)
+        assert a is not None and b is not None and torch.equal(a.visible, b.visible)
+        assert (a.A != b.A).nnz == 0 and np.array_equal(a.A.indptr, b.A.indptr) and torch.equal(a.alpha, b.alpha)

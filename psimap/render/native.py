@@ -231,9 +231,14 @@ def topk_weights(proj: Projected, opacities: torch.Tensor, width: int, height: i
     tiles_x = (W + tile - 1) // tile
     ty, tx = np.arange(H) // tile, np.arange(W) // tile
     start = plan.offsets[:-1][ty[:, None] * tiles_x + tx[None, :]].astype(np.int64)      # [H, W]
-    sel = pos >= 0
-    ids = np.full((H, W, K), -1, np.int64)
-    ids[sel] = plan.ids[(start[:, :, None] + pos)[sel]]
+    if plan.ids.size == 0:
+        return torch.full((H, W, K), -1, dtype=torch.int64), torch.from_numpy(w), torch.from_numpy(out[1])
+    # one gather of every slot, the empty ones (pos -1) pointed at entry 0 and then set to -1:
+    # half the time of a boolean-mask gather and scatter
+    flat = start[:, :, None] + pos
+    np.maximum(flat, 0, out=flat)
+    ids = plan.ids.take(flat).astype(np.int64)
+    ids[pos < 0] = -1
     return torch.from_numpy(ids), torch.from_numpy(w), torch.from_numpy(out[1])
 
 
