@@ -280,9 +280,11 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
     """The cheapest collider within `tolerance` (metres) of `mesh` (watertight trimesh, world frame).
 
     Cascade: primitive -> one convex hull -> CoACD, the last only when the hull misses the
-    tolerance, with ever finer concavity thresholds while `time_budget` CPU seconds (per object
-    up to BUDGET_DIAGONAL across, proportionally more for larger ones, up to 4x) last: CPU time, not wall time, so a busy machine gets the colliders an idle one gets (CoACD is
-    single-threaded: one call took 5.1 CPU s at load 11 and 5.2 at load 6, but 7.5 s wall at load 11).
+    tolerance, with ever finer concavity thresholds while `time_budget` CPU seconds of the CoACD
+    calls (per object up to BUDGET_DIAGONAL across, proportionally more for larger ones, up to 4x)
+    last: CoACD's own CPU time, not wall time nor the whole process's, so a busy machine gets the
+    colliders an idle one gets (one call took 5.1 CPU s at load 11 and 5.2 at load 6, but 7.5 s
+    wall at load 11; the room exported with two busy loops beside it: the same report).
     When nothing fits, the best collider found (at most `max_hulls` hulls) is returned with its
     measured error; the report shows it.
     obstacles: convex trimesh parts of neighbours' colliders (world frame) this one must not enter
@@ -295,7 +297,6 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
     """
     import time
 
-    t_start = time.process_time()
     # furniture is what everything else rests on: a 1.6 m table decimated to the small objects' 600
     # faces for CoACD lost its top under a box by up to 4 cm (its hulls ended 0.649-0.696 m where
     # the top is 0.69-0.708 m; 0.709-0.714 m from 2400 faces, at the same CoACD time), and the box
@@ -375,15 +376,19 @@ def collision_geometry(mesh, tolerance: float | None = None, *, max_hulls: int =
     if err <= tol:
         return Collision("hull", err, tol, parts=[hull])
     best = Collision("hull", err, tol, parts=[hull])
-    last = 0.0
+    last = spent = 0.0
     for thr in coacd_thresholds:
         # a finer threshold costs ~3-4x the previous call (measured on 10 fused objects): start
-        # it only when it can end within the budget
-        if time.process_time() - t_start + 3.0 * last > time_budget:
+        # it only when it can end within the budget. The budget counts the CoACD calls' own CPU
+        # time: the process's CPU time between them (distances, clipping) grows on a busy machine
+        # with the worker threads of numpy's and Open3D's pools waiting for a core, and the same
+        # checkpoint exported under load stopped earlier and got other colliders
+        if time_budget <= 0 or spent + 3.0 * last > time_budget:
             break
         t_call = time.process_time()
         raw = _coacd(mesh, thr, max_hulls, seed, max_faces=int(COACD_FACES * scale))
         last = time.process_time() - t_call
+        spent += last
         parts = clipped([limit_hull_vertices(p) for p in raw])
         if not parts:
             continue

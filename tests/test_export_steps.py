@@ -262,6 +262,45 @@ def test_large_objects_get_more_coacd_faces(monkeypatch):
     assert seen == [C.COACD_FACES, 4 * C.COACD_FACES]
 
 
+def test_coacd_budget_counts_only_coacd_time(monkeypatch):
+    """The CPU-time budget of the decomposition counts CoACD's own calls: the distances and clipping
+    between them take more process CPU time on a busy machine (pool threads waiting for a core), and
+    counting them made the same object stop at a coarser threshold under load. A fake clock: each
+    CoACD call costs 0.2 s, each distance pass 10 s (a heavily loaded machine); the same thresholds
+    run, and the same collider comes out, as with free distance passes."""
+    import time
+
+    from psimap.exporters import decimate as D
+
+    U = trimesh.boolean.union([trimesh.creation.box(extents=[0.3, 0.06, 0.06]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([0.12, 0, 0.18]),
+                               trimesh.creation.box(extents=[0.06, 0.06, 0.3]).apply_translation([-0.12, 0, 0.18])],
+                              engine="manifold")
+    clock = [0.0]
+    monkeypatch.setattr(time, "process_time", lambda: clock[0])
+    real_coacd, real_dist = C._coacd, D.distance_to_surface
+
+    def run(distance_cost):
+        calls = []
+
+        def coacd(*a, **k):
+            calls.append(a[1])
+            clock[0] += 0.2
+            return real_coacd(*a, **k)
+
+        def dist(*a, **k):
+            clock[0] += distance_cost
+            return real_dist(*a, **k)
+        monkeypatch.setattr(C, "_coacd", coacd)
+        monkeypatch.setattr(D, "distance_to_surface", dist)
+        c = C.collision_geometry(U, 1e-3, max_hulls=16, coacd_thresholds=(0.3, 0.15, 0.08), time_budget=4.0)
+        return calls, c
+    quiet, c_quiet = run(0.0)
+    busy, c_busy = run(10.0)
+    assert quiet == busy == [0.3, 0.15, 0.08]
+    assert c_busy.hull_count == c_quiet.hull_count and c_busy.error == c_quiet.error
+
+
 def test_hull_vertex_limit():
     s = trimesh.creation.icosphere(4, radius=0.1)
     h = C.limit_hull_vertices(s, 64)
