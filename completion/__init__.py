@@ -88,14 +88,6 @@ def _unchanged(partial, method, reason, **kw) -> CompletionResult:
     return CompletionResult(mesh=partial, completed=False, method=method, reason=reason, **kw)
 
 
-def _obstacle(mesh, pitch: float):
-    """(closed solid of a neighbour mesh, its manifold3d.Manifold), or None when it has no surface."""
-    from .meshops import solidify, to_manifold
-
-    solid = solidify(mesh, pitch)
-    return None if solid is None else (solid, to_manifold(solid))
-
-
 def complete(partial, context: CompletionContext | Mapping | None = None) -> CompletionResult:
     """Complete a partially observed object.
 
@@ -148,7 +140,7 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
                           seconds=time.perf_counter() - t0)
     from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
     from .freespace import cameras_seeing, check_cameras, known_free, seen_on_surface
-    from .meshops import cached_on, genus, is_solid, seal_handles, to_manifold
+    from .meshops import cached_on, genus, is_solid, seal_handles, solidify, to_manifold
     from .support import normalise_planes, planes_from_background, support_below
 
     # Context is validated before any early return so malformed input always fails loudly.
@@ -187,13 +179,12 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
     free_fn = (lambda q: known_free(q, cams, 2 * tol)) if cams else None
     near = [m for m in (context.neighbours or []) if m is not None and len(m.faces)
             and not ((m.bounds[1] < lo).any() or (m.bounds[0] > hi).any())]
-    # a neighbour's solid and its manifold serve every object it is near (kept on the neighbour)
-    solids = [cached_on(m, ("psimap.obstacle", 0.5 * tol), lambda m=m: _obstacle(m, 0.5 * tol)) for m in near]
+    # a neighbour's solid serves every object it is near (kept on the neighbour, its manifold on it)
+    obstacles = [cached_on(m, ("psimap.solid", 0.5 * tol), lambda m=m: solidify(m, 0.5 * tol)) for m in near]
     if background is not None and is_solid(background):
-        solids.append(cached_on(background, ("psimap.obstacle", 0.0), lambda: (background, to_manifold(background))))
-    solids = [s for s in solids if s is not None]
-    obstacles = [o for o, _ in solids]
-    obstacle_manifolds = [om for _, om in solids]     # converted once, used per candidate
+        obstacles.append(background)
+    obstacles = [o for o in obstacles if o is not None]
+    obstacle_manifolds = [to_manifold(o) for o in obstacles]    # converted once, used per candidate
     obs = Observation(points=points, normals=normals, tolerance=tol, spacing=spacing, coverage=coverage,
                       support=support, blocking=blocking, free=free_fn, context=context)
     if forced == "auto":

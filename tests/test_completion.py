@@ -146,13 +146,13 @@ def test_neighbour_solids_are_kept_on_the_neighbour_until_it_changes():
                   support_planes=TABLE, background=_wall(y0), neighbours=[scan])
     a, b = complete(None, ctx), complete(None, ctx)
     assert a.completed and np.array_equal(a.mesh.vertices, b.mesh.vertices)
-    held = scan._cache[("psimap.obstacle", 0.5 * VOXEL)][0]
-    assert held is not None and held[0].is_watertight
+    held = scan._cache[("psimap.solid", 0.5 * VOXEL)][0]
+    assert held is not None and held.is_watertight and held is not scan
     scan.apply_translation([0.02, 0, 0])    # moved in place (still near): its old solid must not be used
-    assert scan._cache[("psimap.obstacle", 0.5 * VOXEL)] is None
+    assert scan._cache[("psimap.solid", 0.5 * VOXEL)] is None
     complete(None, ctx)
-    moved = scan._cache[("psimap.obstacle", 0.5 * VOXEL)][0][0]
-    np.testing.assert_allclose(moved.bounds - held[0].bounds, [[0.02, 0, 0], [0.02, 0, 0]], atol=0.5 * VOXEL)
+    moved = scan._cache[("psimap.solid", 0.5 * VOXEL)][0]
+    np.testing.assert_allclose(moved.bounds - held.bounds, [[0.02, 0, 0], [0.02, 0, 0]], atol=0.5 * VOXEL)
 
 
 
