@@ -207,15 +207,11 @@ def _measure_piece(points: np.ndarray, cell: float):
     return (poly, *_largest_gap(points, poly, cell))
 
 
-def _column_min(a: np.ndarray) -> np.ndarray:
-    """a.min(axis=0) of a [n, k] with small k, a column at a time: numpy's reduction across rows of
-    a short last axis is ~40x slower (a minimum does not depend on the order it is taken in)."""
-    return np.array([a[:, j].min() for j in range(a.shape[1])], dtype=a.dtype)
-
-
-def _column_max(a: np.ndarray) -> np.ndarray:
-    """a.max(axis=0), a column at a time (`_column_min`)."""
-    return np.array([a[:, j].max() for j in range(a.shape[1])], dtype=a.dtype)
+def _column_extreme(a: np.ndarray, reduce=np.min) -> np.ndarray:
+    """reduce(a, axis=0) of a [n, k] with small k (np.min or np.max), a column at a time: numpy's
+    reduction across rows of a short last axis is ~40x slower (an extreme does not depend on the
+    order it is taken in)."""
+    return np.array([reduce(a[:, j]) for j in range(a.shape[1])], dtype=a.dtype)
 
 
 def _occupancy(points: np.ndarray, cell: float):
@@ -223,9 +219,9 @@ def _occupancy(points: np.ndarray, cell: float):
     enclosed holes filled (what observed surface surrounds on every side was occluded, not absent)."""
     from scipy import ndimage
 
-    origin = _column_min(points) - cell
+    origin = _column_extreme(points) - cell
     ij = np.floor((points - origin) / cell).astype(int)
-    grid = np.zeros(tuple(_column_max(ij) + 2), bool)
+    grid = np.zeros(tuple(_column_extreme(ij, np.max) + 2), bool)
     grid[ij[:, 0], ij[:, 1]] = True
     grid |= ndimage.binary_closing(grid, iterations=1)
     return ndimage.binary_fill_holes(grid), origin
@@ -263,8 +259,8 @@ def _components_2d(points: np.ndarray, cell: float) -> np.ndarray:
     slack so TSDF pinholes do not split a table top)."""
     from scipy import ndimage
 
-    ij = np.floor((points - _column_min(points)) / cell).astype(int)
-    grid = np.zeros(tuple(_column_max(ij) + 1), bool)
+    ij = np.floor((points - _column_extreme(points)) / cell).astype(int)
+    grid = np.zeros(tuple(_column_extreme(ij, np.max) + 1), bool)
     grid[ij[:, 0], ij[:, 1]] = True
     grid = ndimage.binary_dilation(grid, iterations=1)
     lab, _ = ndimage.label(grid, structure=np.ones((3, 3), bool))

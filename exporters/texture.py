@@ -64,6 +64,7 @@ def rasterize_uv(faces: np.ndarray, uv: np.ndarray, size: int, chunk: int = 1 <<
     den = d00 * d11 - d01 * d01
     ok = np.abs(den) > 1e-12
     den = np.where(ok, den, 1.0)
+    eps = 1e-6                                          # a texel centre on an edge is inside
     out = []
     ends = np.cumsum(counts)
     first = 0
@@ -85,7 +86,6 @@ def rasterize_uv(faces: np.ndarray, uv: np.ndarray, size: int, chunk: int = 1 <<
         w1 = (d11[fid] * d20 - d01[fid] * d21) / dn
         w2 = (d00[fid] * d21 - d01[fid] * d20) / dn
         w0 = 1 - w1 - w2
-        eps = 1e-6
         inside = ok[fid] & (w0 >= -eps) & (w1 >= -eps) & (w2 >= -eps)
         out.append((size - 1 - cy[inside], cx[inside], fid[inside],
                     np.stack([w0[inside], w1[inside], w2[inside]], 1)))

@@ -308,5 +308,5 @@ def test_direction_sums_are_numpys_floats():
     t = np.concatenate([t, rng.normal(size=(5000, 3, 3)) * 10.0 ** rng.integers(-9, 9, (5000, 3, 3))])
     assert np.array_equal(E._face_centres(t).view(np.uint64), t.mean(axis=1).view(np.uint64))
     ij = rng.integers(-50, 50, (1000, 2))
-    assert np.array_equal(E._column_max(ij), ij.max(axis=0)) and E._column_max(ij).dtype == ij.dtype
-    assert np.array_equal(E._column_min(t[:, 0]), t[:, 0].min(axis=0))
+    assert np.array_equal(E._column_extreme(ij, np.max), ij.max(axis=0)) and E._column_extreme(ij, np.max).dtype == ij.dtype
+    assert np.array_equal(E._column_extreme(t[:, 0]), t[:, 0].min(axis=0))
