@@ -185,10 +185,11 @@ def assert_forward_close(ref, nat, keep, msg, ref32=None):
                                      f"{float((a - b).abs().max()):.3g} (scale {scale:.3g}; {msg})")
 
 
-def assert_grads_close(gref, gnat, msg, gref32=None):
-    """Per element 1e-4 relative (floor 1e-4 rms). Against the float64 oracle, an element may
-    instead be within 2x the float32 reference's own error: float32 stage-1 quantities lose digits
-    to cancellation (h_x = x T2 - T0 near a surfel's centre), and a float32 kernel cannot beat that."""
+def assert_grads_close(gref, gnat, msg, gref32=None, rms_floor=1e-4):
+    """Per element 1e-4 relative, plus a floor of rms_floor x the gradient's rms. Against the
+    float64 oracle, an element may also be off by 2x the float32 reference's own error: float32
+    stage-1 quantities lose digits to cancellation (h_x = x T2 - T0 near a surfel's centre), and a
+    float32 kernel cannot beat that."""
     gref32 = gref32 or [None] * len(gref)
     for name, a, b, a32 in zip(("means", "quats", "scales", "opacities", "colors", "features"), gref, gnat,
                                gref32):
@@ -196,7 +197,7 @@ def assert_grads_close(gref, gnat, msg, gref32=None):
         if a.numel() == 0:
             continue
         rms = float(a.pow(2).mean().sqrt())
-        tol = 1e-4 * a.abs() + 1e-4 * rms
+        tol = 1e-4 * a.abs() + rms_floor * rms
         if a32 is not None:
             tol = tol + 2 * (a32 - a).abs()
         bad = (a - b).abs() > tol
@@ -228,7 +229,11 @@ def test_native_matches_reference_on_random_scene(topk, tiles):
     # Native counts the evaluations it performs (pixels stop early), the reference every pair.
     assert 0 < nat.stats["evaluated"] <= ref.stats["evaluated"], msg
     assert_forward_close(ref, nat, ~band, msg, res["reference32"][0])
-    assert_grads_close(gref, gnat, msg, res["reference32"][1])
+    # rms floor 1e-3: a thin surfel's (aspect 4-8) gradient, a sum over hundreds of pixels that
+    # cancel, summed in another order than the float32 reference's, was off by 1.9e-4 to 7.3e-4 of
+    # the rms in ~1 % of runs (seeds 226, 253 of 0-260 x 3 cases, and 1776961836); a wrong term in
+    # the kernel is off by a good share of the rms (M411-M416)
+    assert_grads_close(gref, gnat, msg, res["reference32"][1], rms_floor=1e-3)
     # Gradients really flow into the geometry (not a vacuous comparison).
     for name, gr in zip(("means", "quats", "scales", "opacities"), gnat[:4]):
         assert float(gr.abs().max()) > 1e-3, (name, msg)
