@@ -170,7 +170,8 @@ def test_uncovered_mask_spawns_a_query_and_covered_one_does_not():
     field = PanopticField(5, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov),
                           PanopticConfig(feat_dim=4))
 
-    def render(idx, feats, topk):   # nothing rendered: no query explains the mask
+    def render(idx, blocks, topk):   # nothing rendered: no query explains the mask
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         c = feats.shape[1]
         return SimpleNamespace(features=feats.sum() * 0 + torch.zeros(h, w, c), alpha=torch.ones(h, w))
 
@@ -225,7 +226,8 @@ def test_seen_counts_only_frames_where_the_query_owns_pixels():
     inst = torch.zeros(h, w, dtype=torch.long)
     inst[3:9, 4:12] = 7
 
-    def render(idx, feats, topk):   # query 0 owns the box; query 1 has 0.1 everywhere
+    def render(idx, blocks, topk):   # query 0 owns the box; query 1 has 0.1 everywhere
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         img = torch.zeros(h, w, feats.shape[1])
         img[..., 0] = 0.05
         img[3:9, 4:12, 0] = 0.9
@@ -259,7 +261,8 @@ def test_class_term_of_the_matching_cost(w_class, winner):
     inst[3:9, 4:12] = 7
     sem = torch.where(inst > 0, 2, 0)
 
-    def render(idx, feats, topk):
+    def render(idx, blocks, topk):
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         img = torch.full((h, w, feats.shape[1]), 0.02)
         img[3:9, 3:11, 0] = 0.9          # query 0: 7 of the mask's 8 columns, one outside
         img[3:9, 6:12, 1] = 0.9          # query 1: 6 of 8 columns, none outside
@@ -298,7 +301,8 @@ def test_field_counts_frames_where_two_queries_match_different_masks():
     means = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
     inst = torch.tensor([[1, 2]])
 
-    def render(idx, feats, topk):              # one pixel per surfel, fully opaque
+    def render(idx, blocks, topk):              # one pixel per surfel, fully opaque
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         from types import SimpleNamespace
 
         return SimpleNamespace(features=feats.unsqueeze(0), alpha=torch.ones(1, 2))
@@ -420,7 +424,8 @@ def test_instance_class_comes_from_the_masks_its_query_matched(query_class, mug_
         f.semantic.copy_(torch.tensor([[3.0, 0.0], [3.0, 0.0]]))
     means = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
 
-    def render(idx, feats, topk):
+    def render(idx, blocks, topk):
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         return SimpleNamespace(features=feats.unsqueeze(0), alpha=torch.ones(1, 2))
 
     for _ in range(3):
@@ -528,7 +533,8 @@ def test_second_piece_of_a_split_mask_spawns_no_query(split, piece_class, spawne
     sem = torch.where(inst == 5, 1, torch.where(inst == 6, piece_class, 0))
     drawn = (inst > 0).float()
 
-    def render(idx, feats, topk):
+    def render(idx, blocks, topk):
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         img = torch.zeros(h, w, feats.shape[1])
         img[..., 0] = 0.9 * drawn
         return SimpleNamespace(features=feats.sum() * 0 + img, alpha=torch.ones(h, w))
@@ -600,7 +606,8 @@ def test_seen_on_sampled_pixels_scales_the_mask_size():
     inst = torch.zeros(h, w, dtype=torch.long)
     inst[5:15, 5:25] = 7                              # 200 px: ~50 sampled, fewer than 120
 
-    def render(idx, feats, topk):
+    def render(idx, blocks, topk):
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         img = torch.zeros(h, w, feats.shape[1])
         img[5:15, 5:25, 0] = 0.9                      # query 0 owns the box
         img[30:36, 40:50, 1] = 0.9                    # query 1 owns 60 px elsewhere
@@ -662,7 +669,8 @@ def test_every_mask_is_read_every_step_when_pixels_are_tiles(tile):
     inst = torch.zeros(h, w, dtype=torch.long)
     inst[17:20, 25:28] = 7                            # 9 px inside the 8 x 8 tile (16..23, 24..31)
 
-    def render(idx, feats, topk):
+    def render(idx, blocks, topk):
+        feats = torch.cat(blocks, -1)      # losses renders [instance, class] blocks side by side
         img = torch.zeros(h, w, feats.shape[1])
         img[17:20, 25:28, 0] = 0.9                    # query 0 owns the mask
         return SimpleNamespace(features=img + feats.sum() * 0, alpha=torch.ones(h, w))

@@ -418,7 +418,7 @@ def test_frozen_blend_renders_the_pixels_asked_for_as_the_renderer_does():
     feats = torch.randn(s["means"].shape[0], 5, generator=g)
     rows = torch.randperm(v.width * v.height, generator=g)[:300]
     f_blend = feats[blend.visible].clone().requires_grad_(True)
-    got, alpha = blend.render(f_blend).at(rows)
+    (got,), alpha = blend.render([f_blend]).at(rows)
     f_all = feats[vis].clone().requires_grad_(True)
     ref = rasterize(*(t[vis] for t in geo), torch.zeros(vis.numel(), 3), v.viewmat, v.K, v.width, v.height,
                     features=f_all, topk=4, backend="auto")
@@ -426,7 +426,7 @@ def test_frozen_blend_renders_the_pixels_asked_for_as_the_renderer_does():
     assert float(ref.alpha.detach().reshape(-1)[rows].max()) > 0.5
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(alpha, ref.alpha.reshape(-1)[rows], rtol=1e-5, atol=1e-6)
-    full, _ = blend.render(f_blend.detach()).at(None)
+    (full,), _ = blend.render([f_blend.detach()]).at(None)
     torch.testing.assert_close(full[rows], got.detach())
     up = torch.randn(300, 5, generator=g)
     (g_blend,) = torch.autograd.grad((got * up).sum(), f_blend)
@@ -444,7 +444,7 @@ def test_frozen_blend_renders_the_pixels_asked_for_as_the_renderer_does():
     own = torch.searchsorted(blend.visible, part.visible)
     assert torch.equal(blend.visible[own], part.visible)
     f_part = f_blend.detach()[own].clone().requires_grad_(True)
-    got_part, alpha_part = part.render(f_part).at(rows)                 # any order of the rows it holds
+    (got_part,), alpha_part = part.render([f_part]).at(rows)            # any order of the rows it holds
     torch.testing.assert_close(got_part, got.detach(), rtol=1e-6, atol=1e-7)
     torch.testing.assert_close(alpha_part, alpha)
     (g_part,) = torch.autograd.grad((got_part * up).sum(), f_part)
@@ -454,7 +454,7 @@ def test_frozen_blend_renders_the_pixels_asked_for_as_the_renderer_does():
     rest[own] = False
     assert float(g_blend[rest].abs().sum()) == 0.0
     with pytest.raises(ValueError, match="outside the rows"):
-        part.render(f_part).at(torch.tensor([int(torch.ones(v.width * v.height).index_fill(
+        part.render([f_part]).at(torch.tensor([int(torch.ones(v.width * v.height).index_fill(
             0, rows_sorted, 0).nonzero()[0])]))
 
 

@@ -1,8 +1,8 @@
 """The panoptic field (paper §4): per-surfel semantic logits and instance features, instance queries,
 per-frame Hungarian supervision from noisy 2D masks, and dynamic query adjustment.
 
-Rendering is injected: `losses(render, ...)` calls `render(idx [V], features [V, C], topk)` which
-must return a RenderOutput of the visible surfels `idx` (the caller renders them with its current,
+Rendering is injected: `losses(render, ...)` calls `render(idx [V], blocks, topk)` (blocks: feature
+blocks [V, C_i]) which must return a RenderOutput of the visible surfels `idx`, the blocks side by side (the caller renders them with its current,
 possibly learnable, geometry, so the panoptic losses also reach geometry through the Top-K weights).
 The training loop that drives the field is `psimap.panoptic.fit`.
 """
@@ -24,14 +24,17 @@ from psimap.panoptic.queries import InstanceQueries, init_from_points, softmax_l
 from psimap.transforms import pixels_to_camera_torch, transform_points
 
 
-def rendered_pixels(out, rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(features [R, C], alpha [R]) of a render at flat pixel indices rows [R] (None: every pixel).
-    out: a render with `.at(rows)` (psimap.panoptic.fit's frozen blend, which computes only those
-    rows) or with features [H, W, C] and alpha [H, W] (a RenderOutput)."""
+def rendered_blocks(out, rows: torch.Tensor | None, widths: list) -> tuple[list, torch.Tensor]:
+    """([features [R, C_i] of each rendered block], alpha [R]) of a render at flat pixel indices
+    rows [R] (None: every pixel). out: a render with `.at(rows)` giving the blocks (psimap.panoptic.fit's
+    frozen blend, which computes only those rows) or a RenderOutput of the blocks side by side,
+    features [H, W, sum C_i] and alpha [H, W]; widths: the blocks' C_i."""
     if hasattr(out, "at"):
         return out.at(rows)
     f, a = out.features.reshape(-1, out.features.shape[-1]), out.alpha.reshape(-1)
-    return (f, a) if rows is None else (f[rows], a[rows])
+    if rows is not None:
+        f, a = f[rows], a[rows]
+    return list(f.split(list(widths), dim=-1)), a
 
 
 def class_tables(classes) -> tuple[torch.Tensor, torch.Tensor]:
@@ -356,7 +359,8 @@ class PanopticField(nn.Module):
                pixels: "torch.Tensor | None | str" = "sample") -> tuple[torch.Tensor, torch.Tensor, dict]:
         """(L_ins, L_sem, info) for one frame.
 
-        render(idx [V], features [V, C], topk) -> RenderOutput or a frozen blend's render (`.at`);
+        render(idx [V], blocks [[V, C_i]], topk) -> a RenderOutput of the blocks side by side or a
+        frozen blend's render (`.at`; see rendered_blocks);
         means [N, 3] (detached positions are used for the queries' Gaussians); visible_idx [V]
         surfels in this view; instance / semantic [H, W] long per-frame pseudo-labels (None when
         absent); labels: this field's `frame_labels` of them, when the caller keeps it per view
@@ -383,16 +387,15 @@ class PanopticField(nn.Module):
             # query, so the BCE on stuff pixels lowers P(thing) instead of the surfels' opacity
             p_thing = softmax_last(sem_vis)[:, self.class_thing].sum(-1, keepdim=True)
             dist = dist * p_thing
-        feats = torch.cat([dist, sem_vis], dim=-1)
-        out = render(visible_idx, feats, cfg.topk)
+        out = render(visible_idx, [dist, sem_vis], cfg.topk)
         hw = int(width) * int(height)
-        img_px, alpha_px = rendered_pixels(out, pix)                               # [P, Q + S], [P]
+        (q_px, s_px), alpha_px = rendered_blocks(out, pix, [q, s])                 # [P, Q], [P, S], [P]
         share = 1.0 if pix is None else pix.numel() / hw
 
         def sampled(a):             # [..., H*W] -> [..., P]
             return a if pix is None else a[..., pix]
         info = {"queries": q, "matched": 0, "masks": 0}
-        zero = img_px.sum() * 0.0
+        zero = (q_px.sum() + s_px.sum()) * 0.0
         # Instance: per-frame Hungarian matching of the queries' rendered masks to the 2D masks.
         l_ins = zero
         if instance is not None and q > 0:
@@ -405,7 +408,7 @@ class PanopticField(nn.Module):
                 # its summed probability counts every frame: the softmax leaves each query a little
                 # mass on every surfel (then all queries were "seen" in every frame and those of
                 # objects in few frames were pruned as useless). Counted on the sampled pixels.
-                own_f = (img_px[:, :q] > 0.5).float()                              # [P, Q]
+                own_f = (q_px > 0.5).float()                                       # [P, Q]
                 own_n = own_f.sum(0)             # a float column sum (a bool one: 2.6 ms at 85 queries)
                 seen = own_n >= min_px * share
                 self.visible += seen.float()
@@ -415,9 +418,9 @@ class PanopticField(nn.Module):
                 # [Q, P], a view of the render's pixel-major rows: the matching gathers and clamps the
                 # pixels it reads, the loss clamps the matched rows to [1e-6, 1 - 1e-6] (a clamp to
                 # [0, 1] of all of it first was a copy and a backward over [Q, P] that change nothing)
-                prob = img_px[:, :q].T
+                prob = q_px.T
                 match = hungarian_match(prob, target, reject_dice=cfg.reject_dice, w_class=cfg.w_class,
-                                        class_cost=self._class_cost(prob, img_px[:, q:], alpha_px, mask_cls),
+                                        class_cost=self._class_cost(prob, s_px, alpha_px, mask_cls),
                                         window=window)
                 l_ins = matched_mask_loss(prob, target, match, window=window)
                 self.matched[match.query_idx] += 1
@@ -453,7 +456,7 @@ class PanopticField(nn.Module):
             cols = sampled(labels.columns)
             ok = (cols >= 0) & (alpha_px > 0.5)
             if bool(ok.any()):
-                logits = img_px[:, q:][ok] / alpha_px[ok].unsqueeze(-1).clamp_min(1e-3)
+                logits = s_px[ok] / alpha_px[ok].unsqueeze(-1).clamp_min(1e-3)
                 l_sem = F.nll_loss(softmax_last(logits, log=True), cols[ok])
         return cfg.w_ins * l_ins, cfg.w_sem * l_sem, info
 
