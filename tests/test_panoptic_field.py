@@ -235,16 +235,16 @@ def test_fixed_geometry_visibility_cache_changes_nothing():
 
 
 def test_label_settle_rule():
-    """Settled after two calm periods in a row: no query added or dropped, fewer than tol of the
-    thing surfels changed instance, no stuff class gained or lost 5 % of its surfels; a stuff class
-    too small to be kept does not count, nor do thing classes."""
+    """Settled after two calm periods in a row: fewer than tol of the thing surfels changed owning
+    query, no stuff class gained or lost 5 % of its surfels; a stuff class too small to be kept does
+    not count, nor do thing classes, nor a query spawned that owns nothing."""
     from psimap.panoptic.fit import LabelSettle
 
     class Field:
         class_thing = torch.tensor([False, False, True])          # columns: floor, wall, box
 
         def __init__(self):
-            self.steps, self.query_changes = 0, 0
+            self.steps = 0
             self.sem = torch.zeros(1000, dtype=torch.long)
             self.sem[600:] = 1
             self.sem[900:] = 2
@@ -266,13 +266,46 @@ def test_label_settle_rule():
     f.sem[940:960] = 0                                     # thing class columns do not count ...
     f.sem[0] = 2
     assert not rule.settled(f, None) and rule.calm == 1
-    f.query_changes += 1                                   # ... queries do
+    f.queries.count = 2                                    # a query spawned owning nothing: calm
+    assert rule.settled(f, None) and rule.calm == 2
+    f.inst[905:930] = 7                                    # one that takes 25 of 97 thing surfels
     assert not rule.settled(f, None) and rule.calm == 0
     hist = [(round(h["instances_changed"], 4), round(h["classes_changed"], 4)) for h in rule.history]
     # wall: 300 -> 340 surfels, the most changed segment
-    assert hist[1] == (0.03, 0.0) and hist[4][1] == round(40 / 340, 4) and hist[6] == (1.0, 1.0)
+    assert hist[1] == (0.03, 0.0) and hist[4][1] == round(40 / 340, 4) and hist[7] == (round(25 / 97, 4), 0.0)
     off = LabelSettle(0.0)                                 # tol 0: never settled
     assert not any(off.settled(f, None) for _ in range(4))
+
+
+def test_current_labels_name_each_query_for_its_whole_life():
+    """The settle rule's labels name a surfel's query by the id it was born with: dropping another
+    query, or spawning one, renames no surfel (by position, dropping query 1 renamed the surfels of
+    query 2, and every adjustment that dropped a query looked like a relabelling)."""
+    from psimap.panoptic.field import PanopticField
+    from psimap.panoptic.queries import InstanceQueries, init_from_points
+
+    g = torch.Generator().manual_seed(0)
+    near = torch.randn(20, 3, generator=g) * 0.02
+    a, b, far = near + torch.tensor([0.0, 0, 2]), near + torch.tensor([0.5, 0, 2]), near + torch.tensor([9.0, 0, 2])
+    feat, mean, cov = init_from_points([a, far, b], 4, generator=g)
+    field = PanopticField(40, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov),
+                          PanopticConfig(feat_dim=4, smooth_k=0))
+    means = torch.cat([a, b])
+    with torch.no_grad():                    # each cluster's surfels carry their query's feature
+        field.instance[:20] = 4 * feat[0]
+        field.instance[20:] = 4 * feat[2]
+    _, before = field.current_labels(means)
+    assert before[:20].unique().tolist() == [1] and before[20:].unique().tolist() == [3]
+    field.steps = 1000                       # every query old enough to be judged
+    field.matched = torch.tensor([10.0, 0.0, 10.0])
+    field.visible = torch.tensor([10.0, 10.0, 10.0])
+    assert field.adjust(means) == 1 and field.uid.tolist() == [0, 2]       # the far one, never matched
+    _, after = field.current_labels(means)
+    assert torch.equal(after, before)
+    field._pending.append((far, None))
+    field._spawn_pending()
+    assert field.uid.tolist() == [0, 2, 3]                                # a new id, never a reused one
+    assert torch.equal(field.current_labels(means)[1], before)
 
 
 def test_panoptic_steps_stop_when_labels_settle():

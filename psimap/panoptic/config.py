@@ -76,9 +76,10 @@ class PanopticConfig:
     spawn_split: bool = True        # no spawn for a mask drawn mostly by a query busy with a same-class mask
     max_spawn_per_step: int = 2
     max_queries: int = 256
-    # the steps end once the labels settle: at an adjustment step (adjust_every) with no query
-    # spawned or dropped since the previous one, fewer than this fraction of the surfels changed
-    # class or instance since it; the caller's step count stays the cap. 0 = always run the cap
+    # the steps end once the labels settle: at adjustment steps (adjust_every) where, twice in a
+    # row, fewer than this fraction of the thing surfels changed owning query since the previous
+    # one (and no stuff class segment changed by 5 %: psimap.panoptic.fit.LabelSettle); the
+    # caller's step count stays the cap. 0 = always run the cap
     settle_tol: float = 0.02
     # a stuff class that holds fewer than this share of the surfels (and fewer than
     # min_instance_surfels) is label noise, a few mislabelled pixels' worth (tabletop: 18 of 128k

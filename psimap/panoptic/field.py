@@ -228,8 +228,11 @@ class PanopticField(nn.Module):
         # [Q, S] frames in which each query was matched to a mask of each class column
         self.class_votes = torch.zeros(queries.count, self.class_ids.numel())
         self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
+        # a query's id for its whole life (positions shift as queries are dropped): the settle
+        # test compares which query owns a surfel across adjustments (current_labels)
+        self.uid = torch.arange(queries.count)
+        self._next_uid = queries.count
         self.steps = 0
-        self.query_changes = 0                        # queries spawned + dropped so far
         # (point set [P, 3], feature [F] or None) of masks that no query covers
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         self.last_drops: dict[str, int] = {}          # {rule: queries dropped} at the last adjustment
@@ -278,7 +281,8 @@ class PanopticField(nn.Module):
         self.comatched = F.pad(self.comatched, (0, a, 0, a))
         self.class_votes = F.pad(self.class_votes, (0, 0, 0, a))
         self.born = torch.cat([self.born, torch.full((a,), float(self.steps))])
-        self.query_changes += a
+        self.uid = torch.cat([self.uid, self._next_uid + torch.arange(a)])
+        self._next_uid += a
         self._make_optimizers()
 
     def _queue_uncovered(self, masks: torch.Tensor, match, drawn_on, depth: torch.Tensor,
@@ -547,7 +551,6 @@ class PanopticField(nn.Module):
         keep = ~drop
         removed = int(drop.sum())
         if removed:
-            self.query_changes += removed
             self.queries.keep(keep)
             self.matched = self.matched[keep]
             self.visible = self.visible[keep]
@@ -556,6 +559,7 @@ class PanopticField(nn.Module):
             self.comatched = self.comatched[keep][:, keep]
             self.class_votes = self.class_votes[keep]
             self.born = self.born[keep]
+            self.uid = self.uid[keep]
             self._make_optimizers()
         return removed
 
@@ -587,9 +591,11 @@ class PanopticField(nn.Module):
             return col
 
     def current_labels(self, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(semantic [N] long class column of each surfel's largest logit, instance [N] long its query
-        of largest affinity + 1, 0 for stuff): the export's labels before class fusion and smoothing
-        (cheap enough to compare every adjustment period: the settle test of psimap.panoptic.fit)."""
+        """(semantic [N] long class column of each surfel's largest logit, instance [N] long the
+        lifelong id (`uid`) of its query of largest affinity + 1, 0 for stuff): the export's labels
+        before class fusion and smoothing, the same ids whatever queries were spawned or dropped in
+        between (cheap enough to compare every adjustment period: the settle test of
+        psimap.panoptic.fit)."""
         n = means.shape[0]
         with torch.no_grad():
             q = self.queries.count
@@ -599,7 +605,7 @@ class PanopticField(nn.Module):
             else:
                 col = torch.zeros(n, dtype=torch.long)
                 thing = torch.ones(n, dtype=torch.bool)
-            owner = self.affinity_all(means).argmax(-1) + 1 if q else torch.zeros(n, dtype=torch.long)
+            owner = self.uid[self.affinity_all(means).argmax(-1)] + 1 if q else torch.zeros(n, dtype=torch.long)
             return col, torch.where(thing, owner, torch.zeros_like(owner))
 
     # ---- export -------------------------------------------------------------------------------
