@@ -277,6 +277,35 @@ def test_label_settle_rule():
     assert not any(off.settled(f, None) for _ in range(4))
 
 
+def test_label_settle_counts_stuff_segments_not_the_surfels_a_thing_class_trades_with_them():
+    """Surfels moving between a stuff class and a thing class change the stuff segment, by its own
+    size; the thing class's share of the stuff surfels (only those movers, all changed) is no
+    segment: counted as one, a table trading 10 surfels with the floor looked 200 % changed."""
+    from psimap.panoptic.fit import LabelSettle
+
+    class Field:
+        class_thing = torch.tensor([False, True])                 # columns: floor, table
+
+        def __init__(self):
+            self.steps = 0
+            self.sem = torch.zeros(4000, dtype=torch.long)
+            self.sem[3000:] = 1
+            self.inst = self.sem.clone()
+            self.queries = type("Q", (), {"count": 1})()
+
+        def current_labels(self, means):
+            return self.sem.clone(), self.inst.clone()
+
+    f, rule = Field(), LabelSettle(0.02)
+    assert not rule.settled(f, None)
+    f.sem[2990:3000] = 1                                      # 10 floor surfels join the table
+    f.inst[2990:3000] = 1
+    assert not rule.settled(f, None) and rule.calm == 1
+    assert rule.settled(f, None)
+    h = rule.history[1]
+    assert h["classes_changed"] == pytest.approx(10 / 3000) and h["instances_changed"] == pytest.approx(10 / 1010)
+
+
 def test_current_labels_name_each_query_for_its_whole_life():
     """The settle rule's labels name a surfel's query by the id it was born with: dropping another
     query, or spawning one, renames no surfel (by position, dropping query 1 renamed the surfels of
