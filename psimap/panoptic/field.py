@@ -2,8 +2,9 @@
 per-frame Hungarian supervision from noisy 2D masks, and dynamic query adjustment.
 
 Rendering is injected: `losses(render, ...)` calls `render(idx [V], blocks, topk)` (blocks: feature
-blocks [V, C_i]) which must return a RenderOutput of the visible surfels `idx`, the blocks side by side (the caller renders them with its current,
-possibly learnable, geometry, so the panoptic losses also reach geometry through the Top-K weights).
+blocks [V, C_i]) which must return a RenderOutput of the visible surfels `idx`, the blocks side by
+side (the caller renders them with its current, possibly learnable, geometry, so the panoptic
+losses also reach geometry through the Top-K weights).
 The training loop that drives the field is `psimap.panoptic.fit`.
 """
 from __future__ import annotations
