@@ -234,6 +234,37 @@ def test_fixed_geometry_visibility_cache_changes_nothing():
     assert torch.equal(cached["queries"]["feature"], moving["queries"]["feature"])
 
 
+def test_blend_builder_gives_each_view_its_blend_in_first_use_order_within_the_budget():
+    """The blends built on the second thread are the ones built inline; past the cache budget
+    (counted in the order the steps first read the views) a view gets None, and what building a
+    view raised reaches the step that asks for it."""
+    from psimap.panoptic.fit import BlendBuilder, frozen_blend, frustum_candidates, view_of
+    from psimap.render.api import native_available
+
+    if not native_available():
+        pytest.skip("the frozen blend needs the native renderer")
+    s, frames, _ = _two_box_scene(n_frames=4)
+    views = [view_of(f) for f in frames]
+    geo = tuple(s[k] for k in ("means", "quats", "scales", "opacities"))
+    inline = [frozen_blend(*geo, frustum_candidates(geo[0], geo[2], v.viewmat, v.K, v.width, v.height),
+                           v.viewmat, v.K, v.width, v.height, 4) for v in views]
+    builder = BlendBuilder(views, [2, 0, 3, 1], geo, 4)
+    for i, want in enumerate(inline):
+        got = builder.get(i)
+        assert (got.A != want.A).nnz == 0 and torch.equal(got.visible, want.visible)
+        assert torch.equal(got.alpha, want.alpha)
+    builder.close()
+    # room for the first view read and part of the second: the second is the last one built
+    builder = BlendBuilder(views, [2, 0, 3, 1], geo, 4, budget=inline[2].nbytes + 1)
+    assert [builder.get(i) is None for i in (2, 0, 3, 1)] == [False, False, True, True]
+    builder.close()
+    builder = BlendBuilder([None] + views[1:], [1, 0], geo, 4)
+    assert builder.get(1) is not None
+    with pytest.raises(AttributeError):
+        builder.get(0)
+    builder.close()
+
+
 def test_label_settle_rule():
     """Settled after two calm periods in a row: fewer than tol of the thing surfels changed owning
     query, no stuff class gained or lost 5 % of its surfels; a stuff class too small to be kept does

@@ -116,6 +116,42 @@ def frustum_candidates(means, scales, w2c, K, width, height, near=0.2, far=1000.
 BLEND_CACHE_BYTES = 1 << 30
 
 
+class BlendBuilder:
+    """The frozen blends of the views, built on a second thread in the order the steps first read
+    them, while the steps run on the first: the steps use one core (psimap.train's panoptic phase
+    and fit_panoptic run torch on one thread), and building a view's blend (frustum_candidates,
+    frozen_blend; the native kernel releases the GIL) took ~25 ms of every first step on a 320x240
+    view, ~90 ms on a 640x480 one. The same blends in the same order, so the cache budget
+    (BLEND_CACHE_BYTES) drops the same views: those past it come back None."""
+
+    def __init__(self, views, first_use, geometry, topk: int, budget: int = BLEND_CACHE_BYTES):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._views, self._geometry, self._topk = views, geometry, int(topk)
+        self._budget, self._bytes = int(budget), 0
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psimap-blend")
+        self._futures = {int(i): self._pool.submit(self._build, int(i)) for i in first_use}
+
+    def _build(self, i: int) -> FrozenBlend | None:
+        if self._bytes >= self._budget:
+            return None
+        means, quats, scales, opac = self._geometry
+        fr = self._views[i]
+        near = frustum_candidates(means, scales, fr.viewmat, fr.K, fr.width, fr.height)
+        blend = frozen_blend(means, quats, scales, opac, near, fr.viewmat, fr.K, fr.width, fr.height,
+                             self._topk)
+        self._bytes += blend.nbytes if blend is not None else 0
+        return blend
+
+    def get(self, i: int) -> FrozenBlend | None:
+        """View i's blend (waits for it; re-raises what building it raised)."""
+        return self._futures[int(i)].result()
+
+    def close(self) -> None:
+        """Drop the blends not begun (the steps settled before reading their views)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 class _RowBlend(torch.autograd.Function):
     """features [R, C] = A [R, V] @ f [V, C] with A a scipy CSR matrix; the backward multiplies by
     its transpose (CSC: no transposed copy is built). scipy's products run ~2x torch's sparse CSR
@@ -343,10 +379,6 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     computed once as a sparse blend (frozen_blend) and every later step is a sparse matrix product;
     False rasterizes every step (the same numbers up to float rounding).
     """
-    from tqdm import tqdm
-
-    from psimap.render import rasterize
-
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
     frozen = frozen and backend in ("auto", "native")
@@ -354,18 +386,39 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     if not train_views:
         raise PsimapError("no frame has semantic or instance pseudo-labels: nothing to train the "
                           "panoptic field on")
-    queries = init_queries(train_views, classes, cfg, scene_scale=scene_scale, generator=generator)
+    order = rng.integers(0, len(train_views), size=iters)
     means, quats, scales, opac, colors = surfels()
+    builder = None
+    if joint is None and frozen and iters > 0:
+        # started first: its first blends build while the queries are initialised
+        _, first = np.unique(order, return_index=True)
+        builder = BlendBuilder(train_views, order[np.sort(first)],
+                               tuple(t.detach() for t in (means, quats, scales, opac)), cfg.topk)
+    try:
+        return _train_field_steps(train_views, classes, cfg, means, quats, scales, opac, colors, surfels,
+                                  order=order, builder=builder, iters=iters, scene_scale=scene_scale,
+                                  generator=generator, joint=joint, backend=backend, log=log,
+                                  progress=progress, log_every=log_every, t0=t0)
+    finally:
+        if builder is not None:
+            builder.close()
+
+
+def _train_field_steps(train_views, classes, cfg, means, quats, scales, opac, colors, surfels, *, order,
+                       builder, iters, scene_scale, generator, joint, backend, log, progress, log_every, t0):
+    from tqdm import tqdm
+
+    from psimap.render import rasterize
+
+    queries = init_queries(train_views, classes, cfg, scene_scale=scene_scale, generator=generator)
     n = int(means.shape[0])
     field = PanopticField(n, classes, queries, cfg, generator=generator)
     q0 = queries.count
     log(f"panoptic: {q0} initial queries from {min(cfg.init_frames, len(train_views))} frames, "
         f"{len(classes)} classes")
-    order = rng.integers(0, len(train_views), size=iters)
     visible: dict[int, torch.Tensor] = {}        # per view, while the geometry is fixed
     blends: dict[int, FrozenBlend | None] = {}   # per view, while the geometry is fixed (frozen_blend)
     frame_labels: dict = {}                       # per view: PanopticField.frame_labels
-    blend_bytes = 0
     guard, removed_total = NonFiniteGuard(), 0
     settle = LabelSettle(cfg.settle_tol, cfg.min_stuff_share)
     steps_done, stop = iters, "cap"
@@ -376,14 +429,8 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
             if joint is not None:
                 means, quats, scales, opac, colors = surfels()
             blend = blends.get(i)
-            if joint is None and frozen and i not in blends:
-                blend = None
-                if blend_bytes < BLEND_CACHE_BYTES:
-                    near = frustum_candidates(means, scales, fr.viewmat, fr.K, fr.width, fr.height)
-                    blend = frozen_blend(means, quats, scales, opac, near, fr.viewmat, fr.K, fr.width,
-                                         fr.height, cfg.topk)
-                    blend_bytes += blend.nbytes if blend is not None else 0
-                blends[i] = blend
+            if builder is not None and i not in blends:
+                blend = blends[i] = builder.get(i)
                 if blend is not None:
                     visible[i] = blend.visible
             vis = visible.get(i)
