@@ -151,6 +151,12 @@ class BlendBuilder:
         """Drop the blends not begun (the steps settled before reading their views)."""
         self._pool.shutdown(wait=True, cancel_futures=True)
 
+    def __enter__(self) -> "BlendBuilder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
 
 class _RowBlend(torch.autograd.Function):
     """features [R, C] = A [R, V] @ f [V, C] with A a scipy CSR matrix; the backward multiplies by
@@ -379,6 +385,12 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     computed once as a sparse blend (frozen_blend) and every later step is a sparse matrix product;
     False rasterizes every step (the same numbers up to float rounding).
     """
+    from contextlib import nullcontext
+
+    from tqdm import tqdm
+
+    from psimap.render import rasterize
+
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
     frozen = frozen and backend in ("auto", "native")
@@ -386,31 +398,8 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     if not train_views:
         raise PsimapError("no frame has semantic or instance pseudo-labels: nothing to train the "
                           "panoptic field on")
-    order = rng.integers(0, len(train_views), size=iters)
-    means, quats, scales, opac, colors = surfels()
-    builder = None
-    if joint is None and frozen and iters > 0:
-        # started first: its first blends build while the queries are initialised
-        _, first = np.unique(order, return_index=True)
-        builder = BlendBuilder(train_views, order[np.sort(first)],
-                               tuple(t.detach() for t in (means, quats, scales, opac)), cfg.topk)
-    try:
-        return _train_field_steps(train_views, classes, cfg, means, quats, scales, opac, colors, surfels,
-                                  order=order, builder=builder, iters=iters, scene_scale=scene_scale,
-                                  generator=generator, joint=joint, backend=backend, log=log,
-                                  progress=progress, log_every=log_every, t0=t0)
-    finally:
-        if builder is not None:
-            builder.close()
-
-
-def _train_field_steps(train_views, classes, cfg, means, quats, scales, opac, colors, surfels, *, order,
-                       builder, iters, scene_scale, generator, joint, backend, log, progress, log_every, t0):
-    from tqdm import tqdm
-
-    from psimap.render import rasterize
-
     queries = init_queries(train_views, classes, cfg, scene_scale=scene_scale, generator=generator)
+    means, quats, scales, opac, colors = surfels()
     n = int(means.shape[0])
     field = PanopticField(n, classes, queries, cfg, generator=generator)
     q0 = queries.count
@@ -422,7 +411,14 @@ def _train_field_steps(train_views, classes, cfg, means, quats, scales, opac, co
     guard, removed_total = NonFiniteGuard(), 0
     settle = LabelSettle(cfg.settle_tol, cfg.min_stuff_share)
     steps_done, stop = iters, "cap"
-    with tqdm(total=iters, desc="panoptic", disable=not progress, dynamic_ncols=True) as bar:
+    order = rng.integers(0, len(train_views), size=iters)
+    builder = None
+    if joint is None and frozen and iters > 0:
+        _, first = np.unique(order, return_index=True)
+        builder = BlendBuilder(train_views, order[np.sort(first)],
+                               tuple(t.detach() for t in (means, quats, scales, opac)), cfg.topk)
+    with builder or nullcontext(), tqdm(total=iters, desc="panoptic", disable=not progress,
+                                        dynamic_ncols=True) as bar:
         for step in range(iters):
             i = int(order[step])
             fr = train_views[i]
