@@ -405,8 +405,7 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     q0 = queries.count
     log(f"panoptic: {q0} initial queries from {min(cfg.init_frames, len(train_views))} frames, "
         f"{len(classes)} classes")
-    visible: dict[int, torch.Tensor] = {}        # per view, while the geometry is fixed
-    blends: dict[int, FrozenBlend | None] = {}   # per view, while the geometry is fixed (frozen_blend)
+    visible: dict[int, torch.Tensor] = {}        # per view without a blend, while the geometry is fixed
     frame_labels: dict = {}                       # per view: PanopticField.frame_labels
     guard, removed_total = NonFiniteGuard(), 0
     settle = LabelSettle(cfg.settle_tol, cfg.min_stuff_share)
@@ -424,12 +423,9 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
             fr = train_views[i]
             if joint is not None:
                 means, quats, scales, opac, colors = surfels()
-            blend = blends.get(i)
-            if builder is not None and i not in blends:
-                blend = blends[i] = builder.get(i)
-                if blend is not None:
-                    visible[i] = blend.visible
-            vis = visible.get(i)
+            # the builder keeps each view's blend (None: past the cache budget, or no native kernel)
+            blend = builder.get(i) if builder is not None else None
+            vis = blend.visible if blend is not None else visible.get(i)
             if vis is None:
                 vis = visible_surfels(means.detach(), quats.detach(), scales.detach(), opac.detach(),
                                       fr.viewmat, fr.K, fr.width, fr.height)
