@@ -386,12 +386,12 @@ class PanopticField(nn.Module):
         f_vis = self.instance[visible_idx]
         sem_vis = self.semantic[visible_idx]          # gathered once: each gather's backward is an [N, S] scatter
         fq = self.queries.attend(f_vis, pos)
-        dist = self.queries.distribution(f_vis, pos, fq)                           # [V, Q]
+        p_thing = None
         if s > 0 and bool(self.class_thing.any()) and not bool(self.class_thing.all()):
             # p(q | g) = P(thing | g) softmax_q(A / T): stuff surfels (walls, floor) belong to no
             # query, so the BCE on stuff pixels lowers P(thing) instead of the surfels' opacity
-            p_thing = softmax_last(sem_vis)[:, self.class_thing].sum(-1, keepdim=True)
-            dist = dist * p_thing
+            p_thing = softmax_last(sem_vis)[:, self.class_thing].sum(-1)
+        dist = self.queries.distribution(f_vis, pos, fq, p_thing)                  # [V, Q]
         out = render(visible_idx, [dist, sem_vis], cfg.topk)
         hw = int(width) * int(height)
         (q_px, s_px), alpha_px = rendered_blocks(out, pix, [q, s])                 # [P, Q], [P, S], [P]

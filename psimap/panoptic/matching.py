@@ -188,7 +188,10 @@ def matched_mask_loss(prob: torch.Tensor, target: torch.Tensor, match: Match, ep
     """
     if match.query_idx.numel() == 0:
         return prob.sum() * 0.0
-    p = prob[match.query_idx].clamp(1e-6, 1 - 1e-6)
+    # the matched rows gathered as columns of prob.T: the field's prob is the transposed view of a
+    # pixel-major render [P, Q], whose gradient then stays pixel-major (a row gather's gradient was
+    # a [Q, P] block that the render's backward copied transposed: ~3 ms a step at 93 queries)
+    p = prob.T[:, match.query_idx].T.clamp(1e-6, 1 - 1e-6)
     t = target[match.mask_idx].to(p.dtype)
     inter = (p * t).sum(-1)
     mass = p.sum(-1) if window is None else (p * torch.maximum(window[match.mask_idx].to(p.dtype), t)).sum(-1)

@@ -534,7 +534,13 @@ void exp_values(const float* x, float* out, int64_t n) {
     }
 }
 
-PixelKernels kernels() { return PixelKernels{PSIMAP_ISA_NAME, kLanes, &forward_tile, &backward_tile, &exp_values}; }
+// The panoptic field's fused per-surfel distribution on the same lanes (field_lanes.inl).
+#include "field_lanes.inl"
+
+PixelKernels kernels() {
+    return PixelKernels{PSIMAP_ISA_NAME,   kLanes,           &forward_tile, &backward_tile, &exp_values,
+                        &field_forward_rows, &field_backward_rows};
+}
 
 }  // namespace PSIMAP_ISA_NS
 }  // namespace psimap

@@ -154,6 +154,12 @@ struct PixelKernels {
     void (*backward)(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& saved,
                      const BackwardGrads& g, const TileWork& work);  // fills work.grad_rows / grad_feat
     void (*exp)(const float* x, float* out, int64_t n);  // the kernels' exp_nonpositive, for tests
+    // the panoptic field's per-surfel distribution on rows [v0, v1) (field_lanes.inl, field.h)
+    void (*field_forward)(const float* dot, const double* m2, const float* p_thing, int64_t v0, int64_t v1,
+                          int64_t Q, float temperature, float* out, float* soft);
+    void (*field_backward)(const float* dot, const double* m2, const float* p_thing, const float* soft,
+                           const float* v_out, int64_t v0, int64_t v1, int64_t Q, float temperature,
+                           float* v_dot, double* v_m2, float* v_p_thing);
 };
 
 // The kernels in use: the widest instruction set this CPU runs, unless select_kernels chose one.

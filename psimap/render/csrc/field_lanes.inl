@@ -1,0 +1,212 @@
+// The panoptic field's per-surfel instance distribution (psimap.panoptic.queries,
+// `instance_distribution_reference` is the readable torch form the tests hold this to), fused:
+//   s = sigmoid(dot), e = exp(-min(m2, kMaxM2) / 2), l = s e / T,
+//   out = softmax_q(l) * p_thing
+// over rows of Q queries, kLanes queries per vector. In torch it was ~9 passes over [V, Q]
+// forward and ~13 backward with their temporaries (two of them casts of m2 between float64 and
+// float32): 34 ms a step at 17k surfels x 93 queries. Included by raster_isa_*.cpp after
+// raster_lanes.inl, inside namespace psimap::PSIMAP_ISA_NS (simd_lanes.h is already there); the
+// rows [v0, v1) of a call, field.cpp splits the rows over threads (no OpenMP nor any shared inline
+// function here). Each row is computed alone, so any thread count gives the same bits.
+
+namespace {
+
+constexpr float kMaxM2 = 160.0f;       // psimap.panoptic.queries.MAX_MAHALANOBIS2
+constexpr float kMinExpArg = -87.0f;   // exp_nonpositive stays a normal float down to here
+
+// exp(x) for x <= 0: exp_nonpositive's reduction holds while 2^n is a normal float
+// (n >= -126); below -87 the result (< 1.7e-38) is returned for -87.
+PSIMAP_LANE_FN vf exp_le0(vf x) { return exp_nonpositive(select(x < kMinExpArg, splat(kMinExpArg), x)); }
+
+// sigmoid(x) = 1 / (1 + exp(-x)) from exp(-|x|) <= 1 (no overflow for large |x|).
+PSIMAP_LANE_FN vf sigmoid_of(vf x) {
+    const vi neg = x < 0.0f;
+    const vf e = exp_le0(select(neg, x, -x));
+    return select(neg, e, splat(1.0f)) / (1.0f + e);
+}
+
+// Lanes [q0, q0 + kLanes) of a row: a full vector is one unaligned load or store; the row's last,
+// partial one a masked load / store on AVX-512 and AVX2 (the lanes past the row read as 0 and are
+// not written), value by value through memory on the baseline set.
+PSIMAP_LANE_FN int tail_of(int64_t q0, int64_t Q) { return Q - q0 < kLanes ? static_cast<int>(Q - q0) : kLanes; }
+
+#if PSIMAP_LANES == 8 && defined(__AVX2__)
+PSIMAP_LANE_FN __m256i first_lanes(int n) {
+    return _mm256_cmpgt_epi32(_mm256_set1_epi32(n), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+}
+PSIMAP_LANE_FN __m256i first_lanes_d(int n) {  // 4 doubles
+    return _mm256_cmpgt_epi64(_mm256_set1_epi64x(n), _mm256_setr_epi64x(0, 1, 2, 3));
+}
+#endif
+
+PSIMAP_LANE_FN vf load_f(const float* row, int64_t q0, int64_t Q) {
+    vf v;
+    const int n = tail_of(q0, Q);
+    if (n == kLanes) {
+        memcpy(&v, row + q0, sizeof v);
+        return v;
+    }
+#if PSIMAP_LANES == 16 && defined(__AVX512F__)
+    return reinterpret_cast<vf>(_mm512_maskz_loadu_ps(static_cast<__mmask16>((1u << n) - 1u), row + q0));
+#elif PSIMAP_LANES == 8 && defined(__AVX2__)
+    return reinterpret_cast<vf>(_mm256_maskload_ps(row + q0, first_lanes(n)));
+#else
+    float a[kLanes] = {};
+    for (int l = 0; l < n; ++l) a[l] = row[q0 + l];
+    memcpy(&v, a, sizeof v);
+    return v;
+#endif
+}
+// float64 values rounded to float32 lane by lane (as torch's .to(torch.float32)).
+PSIMAP_LANE_FN vf load_d(const double* row, int64_t q0, int64_t Q) {
+    const int n = tail_of(q0, Q);
+    vd lo, hi;
+    if (n == kLanes) {
+        memcpy(&lo, row + q0, sizeof lo);
+        memcpy(&hi, row + q0 + kHalf, sizeof hi);
+        return to_float(lo, hi);
+    }
+#if PSIMAP_LANES == 16 && defined(__AVX512F__)
+    const unsigned m = (1u << n) - 1u;
+    lo = reinterpret_cast<vd>(_mm512_maskz_loadu_pd(static_cast<__mmask8>(m & 0xffu), row + q0));
+    hi = reinterpret_cast<vd>(_mm512_maskz_loadu_pd(static_cast<__mmask8>(m >> 8), row + q0 + 8));
+    return to_float(lo, hi);
+#elif PSIMAP_LANES == 8 && defined(__AVX2__)
+    lo = reinterpret_cast<vd>(_mm256_maskload_pd(row + q0, first_lanes_d(n)));
+    hi = reinterpret_cast<vd>(_mm256_maskload_pd(row + q0 + 4, first_lanes_d(n - 4)));
+    return to_float(lo, hi);
+#else
+    float a[kLanes] = {};
+    for (int l = 0; l < n; ++l) a[l] = static_cast<float>(row[q0 + l]);
+    vf v;
+    memcpy(&v, a, sizeof v);
+    return v;
+#endif
+}
+PSIMAP_LANE_FN void store_f(float* row, int64_t q0, int64_t Q, vf v) {
+    const int n = tail_of(q0, Q);
+    if (n == kLanes) {
+        memcpy(row + q0, &v, sizeof v);
+        return;
+    }
+#if PSIMAP_LANES == 16 && defined(__AVX512F__)
+    _mm512_mask_storeu_ps(row + q0, static_cast<__mmask16>((1u << n) - 1u), reinterpret_cast<__m512>(v));
+#elif PSIMAP_LANES == 8 && defined(__AVX2__)
+    _mm256_maskstore_ps(row + q0, first_lanes(n), reinterpret_cast<__m256>(v));
+#else
+    float a[kLanes];
+    memcpy(a, &v, sizeof a);
+    for (int l = 0; l < n; ++l) row[q0 + l] = a[l];
+#endif
+}
+// float32 lanes widened to float64 (exact).
+PSIMAP_LANE_FN void store_d(double* row, int64_t q0, int64_t Q, vf v) {
+    const int n = tail_of(q0, Q);
+    const vd lo = lo_d(v), hi = hi_d(v);
+    if (n == kLanes) {
+        memcpy(row + q0, &lo, sizeof lo);
+        memcpy(row + q0 + kHalf, &hi, sizeof hi);
+        return;
+    }
+#if PSIMAP_LANES == 16 && defined(__AVX512F__)
+    const unsigned m = (1u << n) - 1u;
+    _mm512_mask_storeu_pd(row + q0, static_cast<__mmask8>(m & 0xffu), reinterpret_cast<__m512d>(lo));
+    _mm512_mask_storeu_pd(row + q0 + 8, static_cast<__mmask8>(m >> 8), reinterpret_cast<__m512d>(hi));
+#elif PSIMAP_LANES == 8 && defined(__AVX2__)
+    _mm256_maskstore_pd(row + q0, first_lanes_d(n), reinterpret_cast<__m256d>(lo));
+    _mm256_maskstore_pd(row + q0 + 4, first_lanes_d(n - 4), reinterpret_cast<__m256d>(hi));
+#else
+    double a[kLanes];
+    memcpy(a, &lo, sizeof lo);
+    memcpy(a + kHalf, &hi, sizeof hi);
+    for (int l = 0; l < n; ++l) row[q0 + l] = a[l];
+#endif
+}
+PSIMAP_LANE_FN vi real_lanes(int64_t q0, int64_t Q) {
+    vi idx;
+    for (int l = 0; l < kLanes; ++l) idx[l] = l;
+    return idx < static_cast<int32_t>(Q - q0 < kLanes ? Q - q0 : kLanes);
+}
+PSIMAP_LANE_FN float lane_max(vf v) {
+    float a[kLanes];
+    memcpy(a, &v, sizeof a);
+    for (int w = kLanes / 2; w >= 1; w /= 2)
+        for (int l = 0; l < w; ++l) a[l] = a[l + w] > a[l] ? a[l + w] : a[l];
+    return a[0];
+}
+
+// The affinity term of one lane vector: s = sigmoid(dot), e = exp(-min(m2, kMaxM2) / 2).
+PSIMAP_LANE_FN void affinity_terms(vf dot, vf m2, vf* s, vf* e) {
+    *s = sigmoid_of(dot);
+    *e = exp_le0(-0.5f * min_of(m2, splat(kMaxM2)));
+}
+
+}  // namespace
+
+// Rows [v0, v1) of dot [V, Q] float32 (surfel . query features), m2 [V, Q] float64 (squared Mahalanobis),
+// p_thing [V] or null (factor 1): out [V, Q] the distribution, soft [V, Q] the softmax (saved for
+// the backward).
+void field_forward_rows(const float* dot, const double* m2, const float* p_thing, int64_t v0,
+                        int64_t v1, int64_t Q, float temperature, float* out, float* soft) {
+    for (int64_t v = v0; v < v1; ++v) {
+        const float* d_row = dot + v * Q;
+        const double* m_row = m2 + v * Q;
+        float* o_row = out + v * Q;
+        float* s_row = soft + v * Q;
+        vf mx = splat(-__builtin_inff());
+        for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
+            vf s, e;
+            affinity_terms(load_f(d_row, q0, Q), load_d(m_row, q0, Q), &s, &e);
+            const vf l = (s * e) / temperature;
+            store_f(o_row, q0, Q, l);
+            mx = select(real_lanes(q0, Q) & (l > mx), l, mx);
+        }
+        const float m = lane_max(mx);
+        vf sum = vf{};
+        for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
+            const vf p = select(real_lanes(q0, Q), exp_le0(load_f(o_row, q0, Q) - m), vf{});
+            store_f(s_row, q0, Q, p);
+            sum += p;
+        }
+        const float total = lane_sum(sum);
+        const float pt = p_thing ? p_thing[v] : 1.0f;
+        for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
+            const vf p = load_f(s_row, q0, Q) / total;
+            store_f(s_row, q0, Q, p);
+            store_f(o_row, q0, Q, p * pt);
+        }
+    }
+}
+
+// The backward of field_distribution_forward for v_out [V, Q]: v_dot [V, Q] float32, v_m2 [V, Q]
+// float64 (0 where m2 > kMaxM2: the cap's gradient), v_p_thing [V] (written when p_thing is given).
+void field_backward_rows(const float* dot, const double* m2, const float* p_thing,
+                         const float* soft, const float* v_out, int64_t v0, int64_t v1, int64_t Q,
+                         float temperature, float* v_dot, double* v_m2, float* v_p_thing) {
+    for (int64_t v = v0; v < v1; ++v) {
+        const float* s_row = soft + v * Q;
+        const float* g_row = v_out + v * Q;
+        const float pt = p_thing ? p_thing[v] : 1.0f;
+        vf gp = vf{}, us = vf{};
+        for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
+            const vf sm = load_f(s_row, q0, Q), g = load_f(g_row, q0, Q);
+            gp += g * sm;
+            us += (g * pt) * sm;
+        }
+        if (p_thing) v_p_thing[v] = lane_sum(gp);
+        const float c = lane_sum(us);
+        const float* d_row = dot + v * Q;
+        const double* m_row = m2 + v * Q;
+        float* vd_row = v_dot + v * Q;
+        double* vm_row = v_m2 + v * Q;
+        for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
+            const vf sm = load_f(s_row, q0, Q), g = load_f(g_row, q0, Q);
+            const vf v_a = (sm * (g * pt - c)) / temperature;        // through the softmax and 1/T
+            const vf m = load_d(m_row, q0, Q);
+            vf s, e;
+            affinity_terms(load_f(d_row, q0, Q), m, &s, &e);
+            store_f(vd_row, q0, Q, (v_a * e) * ((1.0f - s) * s));
+            store_d(vm_row, q0, Q, select(m <= kMaxM2, ((v_a * s) * e) * -0.5f, vf{}));
+        }
+    }
+}
