@@ -309,7 +309,9 @@ def _own_command() -> str:
 
 
 def _commit() -> str:
-    """Short HEAD, '+ uncommitted changes' when tracked code differs (RESULTS.md and plots aside)."""
+    """Short HEAD, '+ uncommitted changes' when tracked code differs (what benchmarks write aside:
+    RESULTS.md, plots, and the run records a benchmark keeps, benchmarks/*_runs.json, which
+    end_to_end.py rewrites while it runs)."""
     root = Path(__file__).resolve().parents[1]
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
@@ -320,9 +322,13 @@ def _commit() -> str:
         return ""
     if head.returncode != 0:
         return ""
-    dirty = [ln for ln in status.stdout.splitlines()
-             if not re.search(r"benchmarks/(RESULTS\.md|plots/)", ln)]
+    dirty = [ln for ln in status.stdout.splitlines() if not benchmark_output(ln)]
     return head.stdout.strip() + (" + uncommitted changes" if dirty else "")
+
+
+def benchmark_output(status_line: str) -> bool:
+    """Whether a `git status --porcelain` line names a file the benchmarks write (not code)."""
+    return re.search(r"benchmarks/(RESULTS\.md|plots/|\w+_runs\.json)", status_line) is not None
 
 
 if __name__ == "__main__":
