@@ -4,8 +4,8 @@ psimap.render.native.instance_distribution) against its torch form
 
 Oracle: the reference in float64 on float32-representable inputs (the kernel computes in float32,
 m2 rounded to float32 as the reference rounds it). Values of the distribution lie in [0, 1]: held
-to 2e-6 absolute (measured <= 5e-7); gradients to 2e-5 of each gradient's largest magnitude
-(measured <= 3.3e-6: float32 sums over up to 93 queries). Row lengths cover a single lane, whole vectors and partial last vectors of every
+to 4e-6 absolute (measured <= 1.1e-6 over 5 seeds x 6 row lengths x 3 instruction sets); gradients
+to 2e-5 of each gradient's largest magnitude (measured <= 5.5e-6: float32 sums over up to 93 queries). Row lengths cover a single lane, whole vectors and partial last vectors of every
 instruction set (4, 8 and 16 lanes)."""
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def test_native_distribution_matches_the_reference_on_every_instruction_set(q, w
         for isa in _native.available_pixel_kernels():
             _native.use_pixel_kernels(isa)
             got = evaluate(lambda *a: instance_distribution(*a, backend="native"), dot, m2, pt, w, torch.float32)
-            torch.testing.assert_close(got[0], ref[0], rtol=0.0, atol=2e-6, msg=f"{isa}: values")
+            torch.testing.assert_close(got[0], ref[0], rtol=0.0, atol=4e-6, msg=f"{isa}: values")
             for name, a, b in zip(("dot", "m2", "p_thing"), got[1:], ref[1:]):
                 torch.testing.assert_close(a, b, rtol=0.0, atol=2e-5 * float(b.abs().max()) + 1e-12,
                                            msg=f"{isa}: gradient of {name}")
@@ -119,7 +119,7 @@ def test_queries_distribution_runs_the_kernel_and_keeps_the_reference_value():
         d = queries.distribution(feat, pos, p_thing=pt, backend=backend)
         outs[backend] = (d.detach(), torch.autograd.grad((d * w).sum(), params), type(d.grad_fn).__name__)
     assert outs["auto"][2] == "_FieldDistributionBackward" and outs["torch"][2] != outs["auto"][2]
-    torch.testing.assert_close(outs["auto"][0], outs["torch"][0], rtol=0.0, atol=2e-6)
+    torch.testing.assert_close(outs["auto"][0], outs["torch"][0], rtol=0.0, atol=4e-6)
     for a, b in zip(outs["auto"][1], outs["torch"][1]):
         torch.testing.assert_close(a, b, rtol=0.0, atol=1e-4 * float(b.abs().max()))
 

@@ -127,12 +127,44 @@ PSIMAP_LANE_FN vi real_lanes(int64_t q0, int64_t Q) {
     for (int l = 0; l < kLanes; ++l) idx[l] = l;
     return idx < static_cast<int32_t>(Q - q0 < kLanes ? Q - q0 : kLanes);
 }
-PSIMAP_LANE_FN float lane_max(vf v) {
+// Horizontal max / sum of a row's lanes: intrinsics on AVX-512 and x86 baselines, a halving tree
+// through memory elsewhere (a row of 16-20 queries is one or two vectors, so these reductions and
+// not the arithmetic set the cost of a row).
+PSIMAP_LANE_FN float row_max(vf v) {
+#if PSIMAP_LANES == 16 && defined(__AVX512F__)
+    return _mm512_reduce_max_ps(reinterpret_cast<__m512>(v));
+#elif PSIMAP_LANES == 8 && defined(__AVX2__)
+    __m128 m = _mm_max_ps(_mm256_castps256_ps128(reinterpret_cast<__m256>(v)),
+                          _mm256_extractf128_ps(reinterpret_cast<__m256>(v), 1));
+    m = _mm_max_ps(m, _mm_movehl_ps(m, m));
+    return _mm_cvtss_f32(_mm_max_ss(m, _mm_shuffle_ps(m, m, 1)));
+#elif PSIMAP_LANES == 4 && defined(__SSE2__)
+    __m128 m = reinterpret_cast<__m128>(v);
+    m = _mm_max_ps(m, _mm_movehl_ps(m, m));
+    return _mm_cvtss_f32(_mm_max_ss(m, _mm_shuffle_ps(m, m, 1)));
+#else
     float a[kLanes];
     memcpy(a, &v, sizeof a);
     for (int w = kLanes / 2; w >= 1; w /= 2)
         for (int l = 0; l < w; ++l) a[l] = a[l + w] > a[l] ? a[l + w] : a[l];
     return a[0];
+#endif
+}
+PSIMAP_LANE_FN float row_sum(vf v) {
+#if PSIMAP_LANES == 16 && defined(__AVX512F__)
+    return _mm512_reduce_add_ps(reinterpret_cast<__m512>(v));
+#elif PSIMAP_LANES == 8 && defined(__AVX2__)
+    __m128 s = _mm_add_ps(_mm256_castps256_ps128(reinterpret_cast<__m256>(v)),
+                          _mm256_extractf128_ps(reinterpret_cast<__m256>(v), 1));
+    s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    return _mm_cvtss_f32(_mm_add_ss(s, _mm_shuffle_ps(s, s, 1)));
+#elif PSIMAP_LANES == 4 && defined(__SSE2__)
+    __m128 s = reinterpret_cast<__m128>(v);
+    s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    return _mm_cvtss_f32(_mm_add_ss(s, _mm_shuffle_ps(s, s, 1)));
+#else
+    return lane_sum(v);
+#endif
 }
 
 // The affinity term of one lane vector: s = sigmoid(dot), e = exp(-min(m2, kMaxM2) / 2).
@@ -153,25 +185,26 @@ void field_forward_rows(const float* dot, const double* m2, const float* p_thing
         const double* m_row = m2 + v * Q;
         float* o_row = out + v * Q;
         float* s_row = soft + v * Q;
+        const float inv_t = 1.0f / temperature;
         vf mx = splat(-__builtin_inff());
         for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
             vf s, e;
             affinity_terms(load_f(d_row, q0, Q), load_d(m_row, q0, Q), &s, &e);
-            const vf l = (s * e) / temperature;
+            const vf l = (s * e) * inv_t;
             store_f(o_row, q0, Q, l);
             mx = select(real_lanes(q0, Q) & (l > mx), l, mx);
         }
-        const float m = lane_max(mx);
+        const float m = row_max(mx);
         vf sum = vf{};
         for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
             const vf p = select(real_lanes(q0, Q), exp_le0(load_f(o_row, q0, Q) - m), vf{});
             store_f(s_row, q0, Q, p);
             sum += p;
         }
-        const float total = lane_sum(sum);
+        const float inv_total = 1.0f / row_sum(sum);
         const float pt = p_thing ? p_thing[v] : 1.0f;
         for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
-            const vf p = load_f(s_row, q0, Q) / total;
+            const vf p = load_f(s_row, q0, Q) * inv_total;
             store_f(s_row, q0, Q, p);
             store_f(o_row, q0, Q, p * pt);
         }
@@ -187,21 +220,22 @@ void field_backward_rows(const float* dot, const double* m2, const float* p_thin
         const float* s_row = soft + v * Q;
         const float* g_row = v_out + v * Q;
         const float pt = p_thing ? p_thing[v] : 1.0f;
+        const float inv_t = 1.0f / temperature;
         vf gp = vf{}, us = vf{};
         for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
             const vf sm = load_f(s_row, q0, Q), g = load_f(g_row, q0, Q);
             gp += g * sm;
             us += (g * pt) * sm;
         }
-        if (p_thing) v_p_thing[v] = lane_sum(gp);
-        const float c = lane_sum(us);
+        if (p_thing) v_p_thing[v] = row_sum(gp);
+        const float c = row_sum(us);
         const float* d_row = dot + v * Q;
         const double* m_row = m2 + v * Q;
         float* vd_row = v_dot + v * Q;
         double* vm_row = v_m2 + v * Q;
         for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
             const vf sm = load_f(s_row, q0, Q), g = load_f(g_row, q0, Q);
-            const vf v_a = (sm * (g * pt - c)) / temperature;        // through the softmax and 1/T
+            const vf v_a = (sm * (g * pt - c)) * inv_t;        // through the softmax and 1/T
             const vf m = load_d(m_row, q0, Q);
             vf s, e;
             affinity_terms(load_f(d_row, q0, Q), m, &s, &e);
