@@ -582,3 +582,41 @@ def test_frustum_candidates_hold_every_visible_surfel():
         b = frozen_blend(means, quats, scales, opac, cand, w2c, K, 160, 120, topk=4)
         assert a is not None and b is not None and torch.equal(a.visible, b.visible)
         assert (a.A != b.A).nnz == 0 and np.array_equal(a.A.indptr, b.A.indptr) and torch.equal(a.alpha, b.alpha)
+
+
+def test_a_surfel_step_run_in_the_background_is_the_in_line_step():
+    """PanopticField.step(background=...) hands the surfel features' Adam step to an executor (the
+    training loop's second core); zero_grad, the losses, the adjustments and the labels join it
+    first. A lazy executor (the step runs only when joined) shows the join happens before the
+    gradients are zeroed: the same features, bit for bit, as stepping in line, over three steps."""
+    from psimap.panoptic.field import PanopticField
+    from psimap.panoptic.queries import InstanceQueries
+
+    class Lazy:
+        def submit(self, fn):
+            return type("Later", (), {"result": staticmethod(fn)})()
+
+    def field():
+        g = torch.Generator().manual_seed(3)
+        q = InstanceQueries(torch.randn(2, 16, generator=g), torch.zeros(2, 3), torch.eye(3).expand(2, 3, 3),
+                            generator=g)
+        return PanopticField(50, CLASSES, q, PanopticConfig(), generator=g)
+
+    inline, background = field(), field()
+    start = inline.instance.detach().clone()
+    g = torch.Generator().manual_seed(4)
+    for _ in range(3):
+        grads = torch.randn(50, 2, generator=g), torch.randn(50, 16, generator=g)
+        for f in (inline, background):
+            f.zero_grad()
+            f.semantic.grad, f.instance.grad = grads[0].clone(), grads[1].clone()
+        inline.step()
+        background.step(background=Lazy())
+        assert background._surfel_step is not None           # not run yet
+    background.zero_grad()                                    # joins, then zeroes
+    assert background._surfel_step is None and background.instance.grad is None
+    assert not torch.equal(inline.instance, start)
+    assert torch.equal(inline.instance, background.instance) and torch.equal(inline.semantic, background.semantic)
+    background.step(background=Lazy())                        # nothing to step (no gradients) ...
+    background.current_labels(torch.zeros(50, 3))             # ... and the labels join it
+    assert background._surfel_step is None

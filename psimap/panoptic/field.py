@@ -238,6 +238,7 @@ class PanopticField(nn.Module):
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         self.last_drops: dict[str, int] = {}          # {rule: queries dropped} at the last adjustment
         self._gen = generator
+        self._surfel_step = None                     # the surfel features' step when run in the background
         self._make_optimizers()
 
     # ---- optimisation bookkeeping -------------------------------------------------------------
@@ -247,17 +248,34 @@ class PanopticField(nn.Module):
         self.opt_query = torch.optim.Adam(list(self.queries.parameters()), lr=self.cfg.lr_query, fused=True)
 
     def zero_grad(self, set_to_none: bool = True) -> None:
+        self.wait_step()
         self.opt_surfel.zero_grad(set_to_none=set_to_none)
         self.opt_query.zero_grad(set_to_none=set_to_none)
 
-    def step(self) -> None:
+    def step(self, background=None) -> None:
+        """One optimizer step of the surfel features and the queries, then the queued spawns.
+
+        background: an executor (one worker) to run the surfel features' step on, so the caller can
+        prepare its next step meanwhile (psimap.panoptic.fit); `wait_step` then joins it, and must
+        before anything reads or zeroes the surfel features or their gradients. None: in line."""
         for p in (self.semantic, self.instance, *self.queries.parameters()):
             if p.grad is not None:
                 torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
-        self.opt_surfel.step()
+        if background is None:
+            self.opt_surfel.step()
+        else:
+            self._surfel_step = background.submit(self.opt_surfel.step)
         self.opt_query.step()
         self.steps += 1
+        if self._pending:
+            self.wait_step()        # a spawn re-creates both optimizers
         self._spawn_pending()
+
+    def wait_step(self) -> None:
+        """Join the surfel features' step `step(background=...)` started (re-raises its error)."""
+        pending, self._surfel_step = self._surfel_step, None
+        if pending is not None:
+            pending.result()
 
     def _spawn_pending(self) -> None:
         """Queries for masks that no existing query covered (objects the seed frames missed)."""
@@ -374,6 +392,7 @@ class PanopticField(nn.Module):
         draw them here.
         """
         cfg = self.cfg
+        self.wait_step()
         q = self.queries.count
         s = self.class_ids.numel()
         if labels is None:
@@ -523,6 +542,7 @@ class PanopticField(nn.Module):
 
     def adjust(self, means: torch.Tensor) -> int:
         """Drop useless and duplicate queries; returns how many were removed."""
+        self.wait_step()
         q = self.queries.count
         if q <= 1:
             return 0
@@ -598,6 +618,7 @@ class PanopticField(nn.Module):
         between (cheap enough to compare every adjustment period: the settle test of
         psimap.panoptic.fit)."""
         n = means.shape[0]
+        self.wait_step()
         with torch.no_grad():
             q = self.queries.count
             if self.class_ids.numel():
@@ -622,6 +643,7 @@ class PanopticField(nn.Module):
         written to the instance's surfels.
         """
         n = means.shape[0]
+        self.wait_step()
         with torch.no_grad():
             if self.class_ids.numel():
                 col = self.semantic_columns()
@@ -672,6 +694,7 @@ class PanopticField(nn.Module):
 
     def state_for_checkpoint(self, means: torch.Tensor) -> dict:
         """Surfel features, hard labels and queries in the checkpoint's layout."""
+        self.wait_step()
         cov = self.queries.cov().detach()
         lab = self.assign(means)
         return {

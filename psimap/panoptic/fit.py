@@ -385,6 +385,7 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     computed once as a sparse blend (frozen_blend) and every later step is a sparse matrix product;
     False rasterizes every step (the same numbers up to float rounding).
     """
+    from concurrent.futures import ThreadPoolExecutor
     from contextlib import nullcontext
 
     from tqdm import tqdm
@@ -416,8 +417,10 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
         _, first = np.unique(order, return_index=True)
         builder = BlendBuilder(train_views, order[np.sort(first)],
                                tuple(t.detach() for t in (means, quats, scales, opac)), cfg.topk)
-    with builder or nullcontext(), tqdm(total=iters, desc="panoptic", disable=not progress,
-                                        dynamic_ncols=True) as bar:
+    background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psimap-adam",
+                                    initializer=torch.set_num_threads, initargs=(1,))
+    with background, builder or nullcontext(), tqdm(total=iters, desc="panoptic", disable=not progress,
+                                                    dynamic_ncols=True) as bar:
         for step in range(iters):
             i = int(order[step])
             fr = train_views[i]
@@ -432,7 +435,6 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                 if joint is None:
                     visible[i] = vis
 
-            field.zero_grad()
             # the geometry's terms first: they draw from `generator` before the field does
             terms = joint.terms(fr) if joint is not None else {}
             if i not in frame_labels:
@@ -442,6 +444,7 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                 blend = blend.at_pixels(pix)   # only the surfels the sampled tiles blend take part
             if blend is not None:
                 vis = blend.visible
+            field.zero_grad()                  # after the sampling: joins the last surfel step
 
             def render(idx, blocks, topk, fr=fr, means=means, quats=quats, scales=scales, opac=opac,
                        colors=colors, blend=blend):
@@ -465,7 +468,10 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                 guard.skip(bad, f"panoptic training diverged at step {step} (frame {fr.name})")
                 continue
             guard.ok()
-            field.step()
+            # the surfel features' Adam (every surfel: ~2-3 ms of a room step) runs on the second core
+            # while the next step draws its pixels and cuts its blend; the same operations on the
+            # same numbers, so the same field
+            field.step(background if joint is None else None)
             if joint is not None:
                 joint.optimizer.step()
                 joint.optimizer.zero_grad(set_to_none=True)
