@@ -258,18 +258,24 @@ class PanopticField(nn.Module):
         background: an executor (one worker) to run the surfel features' step on, so the caller can
         prepare its next step meanwhile (psimap.panoptic.fit); `wait_step` then joins it, and must
         before anything reads or zeroes the surfel features or their gradients. None: in line."""
-        for p in (self.semantic, self.instance, *self.queries.parameters()):
+        for p in self.queries.parameters():
             if p.grad is not None:
                 torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
         if background is None:
-            self.opt_surfel.step()
+            self._step_surfels()
         else:
-            self._surfel_step = background.submit(self.opt_surfel.step)
+            self._surfel_step = background.submit(self._step_surfels)
         self.opt_query.step()
         self.steps += 1
         if self._pending:
             self.wait_step()        # a spawn re-creates both optimizers
         self._spawn_pending()
+
+    def _step_surfels(self) -> None:
+        for p in (self.semantic, self.instance):          # [N, S] and [N, F]: every surfel
+            if p.grad is not None:
+                torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        self.opt_surfel.step()
 
     def wait_step(self) -> None:
         """Join the surfel features' step `step(background=...)` started (re-raises its error)."""
