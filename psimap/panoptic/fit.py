@@ -417,6 +417,8 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
         _, first = np.unique(order, return_index=True)
         builder = BlendBuilder(train_views, order[np.sort(first)],
                                tuple(t.detach() for t in (means, quats, scales, opac)), cfg.topk)
+    # the surfel features' optimizer steps (PanopticField.step); torch on one thread there too (a
+    # new thread starts with OpenMP's default count, every core)
     background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psimap-adam",
                                     initializer=torch.set_num_threads, initargs=(1,))
     with background, builder or nullcontext(), tqdm(total=iters, desc="panoptic", disable=not progress,
