@@ -282,15 +282,15 @@ class _FieldDistribution(torch.autograd.Function):
     psimap.panoptic.queries.instance_distribution_reference is the torch form it is held to."""
 
     @staticmethod
-    def forward(ctx, dot, m2, p_thing, temperature, threads):
+    def forward(ctx, dot, m2, p_thing, temperature):
         v, q = dot.shape
         dot_np = np.ascontiguousarray(dot.detach().numpy())
         m2_np = np.ascontiguousarray(m2.detach().numpy())
         pt_np = np.zeros(0, np.float32) if p_thing is None else np.ascontiguousarray(p_thing.detach().numpy())
         out, soft = _empty((v, q)), _empty((v, q))
-        _native.field_distribution_forward(dot_np, m2_np, pt_np, v, q, float(temperature), out, soft, threads)
+        _native.field_distribution_forward(dot_np, m2_np, pt_np, v, q, float(temperature), out, soft)
         ctx.arrays = (dot_np, m2_np, pt_np, soft)
-        ctx.temperature, ctx.threads = float(temperature), threads
+        ctx.temperature = float(temperature)
         return torch.from_numpy(out)
 
     @staticmethod
@@ -300,21 +300,18 @@ class _FieldDistribution(torch.autograd.Function):
         v_dot, v_m2 = _empty((v, q)), _empty((v, q), np.float64)
         v_pt = _empty((v,)) if pt_np.size else np.zeros(0, np.float32)
         _native.field_distribution_backward(dot_np, m2_np, pt_np, soft, _f32(v_out), v, q, ctx.temperature,
-                                            v_dot, v_m2, v_pt, ctx.threads)
+                                            v_dot, v_m2, v_pt)
         return (torch.from_numpy(v_dot), torch.from_numpy(v_m2),
-                torch.from_numpy(v_pt) if pt_np.size else None, None, None)
+                torch.from_numpy(v_pt) if pt_np.size else None, None)
 
 
 def instance_distribution(dot: torch.Tensor, m2: torch.Tensor, p_thing: torch.Tensor | None,
-                          temperature: float, threads: int = 1) -> torch.Tensor:
+                          temperature: float) -> torch.Tensor:
     """softmax_q(sigmoid(dot) exp(-min(m2, 160) / 2) / temperature) * p_thing: [V, Q] float32,
     differentiable in dot [V, Q] float32, m2 [V, Q] float64 (squared Mahalanobis distances) and
-    p_thing [V] float32 (None: 1). CPU tensors. threads: the rows split over this many (the same
-    bits for any count). One by default, not the kernel threads: the panoptic steps run on one core
-    while the second builds the frozen blends (psimap.panoptic.fit.BlendBuilder), and a team of two
-    waiting on that core took ~10 ms a room step where one thread took ~5."""
+    p_thing [V] float32 (None: 1). CPU tensors, on the calling thread (csrc/field.cpp says why)."""
     if dot.dtype != torch.float32 or m2.dtype != torch.float64 or dot.shape != m2.shape:
         raise ValueError("instance_distribution: dot [V, Q] float32 and m2 [V, Q] float64")
     if p_thing is not None and (p_thing.dtype != torch.float32 or p_thing.shape != dot.shape[:1]):
         raise ValueError("instance_distribution: p_thing [V] float32")
-    return _FieldDistribution.apply(dot, m2, p_thing, float(temperature), max(1, int(threads)))
+    return _FieldDistribution.apply(dot, m2, p_thing, float(temperature))

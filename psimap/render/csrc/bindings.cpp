@@ -204,7 +204,7 @@ NB_MODULE(_native, m) {
     m.def(
         "field_distribution_forward",
         [](Array<const float> dot, Array<const double> m2, Array<const float> p_thing, int64_t V,
-           int64_t Q, float temperature, Array<float> out, Array<float> soft, int threads) {
+           int64_t Q, float temperature, Array<float> out, Array<float> soft) {
             const size_t n = static_cast<size_t>(V) * static_cast<size_t>(Q);
             checked(dot, n, "dot");
             checked(m2, n, "m2");
@@ -214,17 +214,17 @@ NB_MODULE(_native, m) {
             if (!(temperature > 0.0f)) throw std::invalid_argument("psimap native: temperature must be > 0");
             nb::gil_scoped_release release;
             field_distribution_forward(dot.data(), m2.data(), p_thing.size() ? p_thing.data() : nullptr, V, Q,
-                                       temperature, out.data(), soft.data(), threads);
+                                       temperature, out.data(), soft.data());
         },
         nb::arg("dot"), nb::arg("m2"), nb::arg("p_thing"), nb::arg("V"), nb::arg("Q"), nb::arg("temperature"),
-        nb::arg("out"), nb::arg("soft"), nb::arg("threads") = 1,
+        nb::arg("out"), nb::arg("soft"),
         "Panoptic field distribution softmax_q(sigmoid(dot) exp(-min(m2, 160) / 2) / T) * p_thing into "
         "out [V, Q] (softmax into soft); p_thing empty = 1.");
     m.def(
         "field_distribution_backward",
         [](Array<const float> dot, Array<const double> m2, Array<const float> p_thing, Array<const float> soft,
            Array<const float> v_out, int64_t V, int64_t Q, float temperature, Array<float> v_dot,
-           Array<double> v_m2, Array<float> v_p_thing, int threads) {
+           Array<double> v_m2, Array<float> v_p_thing) {
             const size_t n = static_cast<size_t>(V) * static_cast<size_t>(Q);
             checked(dot, n, "dot");
             checked(m2, n, "m2");
@@ -241,11 +241,11 @@ NB_MODULE(_native, m) {
             nb::gil_scoped_release release;
             field_distribution_backward(dot.data(), m2.data(), pt ? p_thing.data() : nullptr, soft.data(),
                                         v_out.data(), V, Q, temperature, v_dot.data(), v_m2.data(),
-                                        pt ? v_p_thing.data() : nullptr, threads);
+                                        pt ? v_p_thing.data() : nullptr);
         },
         nb::arg("dot"), nb::arg("m2"), nb::arg("p_thing"), nb::arg("soft"), nb::arg("v_out"), nb::arg("V"),
         nb::arg("Q"), nb::arg("temperature"), nb::arg("v_dot"), nb::arg("v_m2"), nb::arg("v_p_thing"),
-        nb::arg("threads") = 1, "Backward of field_distribution_forward: v_dot [V, Q], v_m2 [V, Q] float64, v_p_thing [V].");
+        "Backward of field_distribution_forward: v_dot [V, Q], v_m2 [V, Q] float64, v_p_thing [V].");
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
     bind_project<float>(m, "f32");

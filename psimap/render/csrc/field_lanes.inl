@@ -5,9 +5,8 @@
 // over rows of Q queries, kLanes queries per vector. In torch it was ~9 passes over [V, Q]
 // forward and ~13 backward with their temporaries (two of them casts of m2 between float64 and
 // float32): 34 ms a step at 17k surfels x 93 queries. Included by raster_isa_*.cpp after
-// raster_lanes.inl, inside namespace psimap::PSIMAP_ISA_NS (simd_lanes.h is already there); the
-// rows [v0, v1) of a call, field.cpp splits the rows over threads (no OpenMP nor any shared inline
-// function here). Each row is computed alone, so any thread count gives the same bits.
+// raster_lanes.inl, inside namespace psimap::PSIMAP_ISA_NS (simd_lanes.h is already there): the rows
+// [v0, v1) of a call, each computed alone (no OpenMP nor any shared inline function here).
 
 namespace {
 
