@@ -700,7 +700,6 @@ class PanopticField(nn.Module):
 
     def state_for_checkpoint(self, means: torch.Tensor) -> dict:
         """Surfel features, hard labels and queries in the checkpoint's layout."""
-        self.wait_step()
         cov = self.queries.cov().detach()
         lab = self.assign(means)
         return {

@@ -309,7 +309,7 @@ def instance_distribution(dot: torch.Tensor, m2: torch.Tensor, p_thing: torch.Te
                           temperature: float) -> torch.Tensor:
     """softmax_q(sigmoid(dot) exp(-min(m2, 160) / 2) / temperature) * p_thing: [V, Q] float32,
     differentiable in dot [V, Q] float32, m2 [V, Q] float64 (squared Mahalanobis distances) and
-    p_thing [V] float32 (None: 1). CPU tensors, on the calling thread (csrc/field.cpp says why)."""
+    p_thing [V] float32 (None: 1). CPU tensors, on the calling thread (csrc/bindings.cpp says why)."""
     if dot.dtype != torch.float32 or m2.dtype != torch.float64 or dot.shape != m2.shape:
         raise ValueError("instance_distribution: dot [V, Q] float32 and m2 [V, Q] float64")
     if p_thing is not None and (p_thing.dtype != torch.float32 or p_thing.shape != dot.shape[:1]):

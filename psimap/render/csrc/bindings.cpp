@@ -12,7 +12,6 @@
 
 #include "threads.h"
 
-#include "field.h"
 #include "project.h"
 #include "rasterize.h"
 
@@ -212,9 +211,12 @@ NB_MODULE(_native, m) {
             checked(soft, n, "soft");
             if (p_thing.size() != 0) checked(p_thing, static_cast<size_t>(V), "p_thing");
             if (!(temperature > 0.0f)) throw std::invalid_argument("psimap native: temperature must be > 0");
+            // all rows on the calling thread: the panoptic steps run on one core while the second
+            // builds the frozen blends or steps the surfel optimizer (psimap.panoptic.fit), and a team
+            // of two waiting on that core took ~10 ms a room step where one thread took ~5
             nb::gil_scoped_release release;
-            field_distribution_forward(dot.data(), m2.data(), p_thing.size() ? p_thing.data() : nullptr, V, Q,
-                                       temperature, out.data(), soft.data());
+            pixel_kernels().field_forward(dot.data(), m2.data(), p_thing.size() ? p_thing.data() : nullptr, 0, V,
+                                          Q, temperature, out.data(), soft.data());
         },
         nb::arg("dot"), nb::arg("m2"), nb::arg("p_thing"), nb::arg("V"), nb::arg("Q"), nb::arg("temperature"),
         nb::arg("out"), nb::arg("soft"),
@@ -239,9 +241,9 @@ NB_MODULE(_native, m) {
             }
             if (!(temperature > 0.0f)) throw std::invalid_argument("psimap native: temperature must be > 0");
             nb::gil_scoped_release release;
-            field_distribution_backward(dot.data(), m2.data(), pt ? p_thing.data() : nullptr, soft.data(),
-                                        v_out.data(), V, Q, temperature, v_dot.data(), v_m2.data(),
-                                        pt ? v_p_thing.data() : nullptr);
+            pixel_kernels().field_backward(dot.data(), m2.data(), pt ? p_thing.data() : nullptr, soft.data(),
+                                           v_out.data(), 0, V, Q, temperature, v_dot.data(), v_m2.data(),
+                                           pt ? v_p_thing.data() : nullptr);
         },
         nb::arg("dot"), nb::arg("m2"), nb::arg("p_thing"), nb::arg("soft"), nb::arg("v_out"), nb::arg("V"),
         nb::arg("Q"), nb::arg("temperature"), nb::arg("v_dot"), nb::arg("v_m2"), nb::arg("v_p_thing"),

@@ -154,7 +154,7 @@ struct PixelKernels {
     void (*backward)(const SurfelInputs& in, const RasterConfig& cfg, const ForwardBuffers& saved,
                      const BackwardGrads& g, const TileWork& work);  // fills work.grad_rows / grad_feat
     void (*exp)(const float* x, float* out, int64_t n);  // the kernels' exp_nonpositive, for tests
-    // the panoptic field's per-surfel distribution on rows [v0, v1) (field_lanes.inl, field.h)
+    // the panoptic field's per-surfel distribution on rows [v0, v1) (field_lanes.inl)
     void (*field_forward)(const float* dot, const double* m2, const float* p_thing, int64_t v0, int64_t v1,
                           int64_t Q, float temperature, float* out, float* soft);
     void (*field_backward)(const float* dot, const double* m2, const float* p_thing, const float* soft,
