@@ -99,38 +99,66 @@ def window_pixels(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor
     return x, target, window
 
 
+def match_sums_reference(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor | None = None,
+                         clamp: float | None = None) -> torch.Tensor:
+    """The sums the matching costs read, [5, M, Q]: over each mask's pixels p, log p and log(1 - p),
+    over its window's pixels p and log(1 - p) (every pixel without windows). prob [Q, P] in (0, 1);
+    target [M, P] {0, 1}; window [M, P] {0, 1} containing its target; clamp: the probabilities are
+    first clamped to [clamp, 1 - clamp]. The torch form of the native kernel of the same name
+    (psimap.render.native.match_sums)."""
+    x, target, window = window_pixels(prob, target, window)                        # x [P', Q]
+    if clamp is not None:
+        x = x.clamp(clamp, 1 - clamp)
+    log1m = torch.log1p(x.neg())
+    on_mask = [target @ x, target @ torch.log(x), target @ log1m]                  # [M, Q] each
+    if window is None:
+        on_window = [x.sum(0).expand_as(on_mask[0]), log1m.sum(0).expand_as(on_mask[0])]
+    else:
+        on_window = [window @ x, window @ log1m]
+    return torch.stack(on_mask + on_window)
+
+
+def match_sums(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor | None = None,
+               clamp: float | None = None, backend: str = "auto") -> torch.Tensor:
+    """match_sums_reference's value [5, M, Q] in prob's dtype: the native kernel (one pass over the
+    window pixels' rows, csrc/match_lanes.inl) for float32 CPU probabilities with windows and a
+    clamp where it is built (backend "auto" or "native"; "native" raises where it cannot run), else
+    the torch form. In torch: a clamped copy, two logarithms and a negation of every window
+    pixel's row, read back by matrix products, ~10 ms a step at 85 queries, ~2 ms at 21."""
+    native = (backend in ("auto", "native") and window is not None and clamp is not None and 0 < clamp < 0.5
+              and prob.device.type == "cpu" and prob.dtype == torch.float32)
+    if native:
+        from psimap.render.api import native_available
+
+        native = native_available()
+    if backend == "native" and not native:
+        raise ValueError("match_sums: the native kernel needs float32 CPU probabilities, windows, a clamp "
+                         "and the built module")
+    if not native:
+        return match_sums_reference(prob, target, window, clamp)
+    from psimap.render.native import match_sums as fused
+
+    # per mask and pixel: 0 outside the mask's window, 1 in it, 2 on the mask (the window holds it)
+    codes = (window + target).to(torch.uint8)                                                # [M, P]
+    return fused(prob.T, codes, clamp, 1 - clamp).to(prob.dtype)
+
+
 def match_costs(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor | None = None,
-                eps: float = 1.0, clamp: float | None = None) -> dict:
+                eps: float = 1.0, clamp: float | None = None, backend: str = "auto") -> dict:
     """The matching's terms, [Q, M] each: "dice" and "bce" (dice_cost's and bce_cost's values), and
     with a window "on_mask" / "on_ring", each query's mean probability on the mask and on the rest of
     its window ("ring_pixels" [1, M]: that rest's size).
 
     prob [Q, P] in (0, 1); target [M, P] {0, 1}; window [M, P] {0, 1} containing its target. With
-    windows only the pixels of some window are read (every term is measured inside them). Three
-    products with [target, window]: p, log p and log(1 - p), each taken once and never copied into
-    one [3Q, P] block (that copy and the logs' negation were ~5 ms of a step at 85 queries); the
-    signs are applied to the [Q, M] results. clamp: the probabilities are first clamped to
-    [clamp, 1 - clamp] (on the window pixels only: no copy of the rest).
+    windows only the pixels of some window are read (every term is measured inside them). clamp:
+    the probabilities are first clamped to [clamp, 1 - clamp]. The sums come from `match_sums`
+    (backend: which form).
     """
-    m = target.shape[0]
-    x, target, window = window_pixels(prob, target, window)                        # x [P, Q]
-    if clamp is not None:
-        x = x.clamp(clamp, 1 - clamp)
-    lhs = target if window is None else torch.cat([target, window])               # [M or 2M, P]
-    z_p = (lhs @ x).T                                                              # [Q, M or 2M]
-    z_log = (lhs @ torch.log(x)).T
-    log1m = torch.log1p(x.neg())
-    z_log1m = (lhs @ log1m).T
-    inter, pos_t, neg_t = z_p[:, :m], -z_log[:, :m], -z_log1m[:, :m]
+    inter, log_t, log1m_t, mass, log1m_w = (s.T for s in match_sums(prob, target, window, clamp, backend))
     n_t = target.sum(-1).unsqueeze(0)                                                # [1, M]
-    if window is None:
-        mass, neg_w = x.sum(0).unsqueeze(1), -log1m.sum(0).unsqueeze(1)
-        n_w = torch.full_like(n_t, float(x.shape[0]))
-    else:
-        mass, neg_w = z_p[:, m:], -z_log1m[:, m:]
-        n_w = window.sum(-1).unsqueeze(0)
+    n_w = torch.full_like(n_t, float(prob.shape[1])) if window is None else window.sum(-1).unsqueeze(0)
     out = {"dice": 1.0 - (2.0 * inter + eps) / (mass + n_t + eps),
-           "bce": (pos_t + neg_w - neg_t) / n_w.clamp_min(1.0)}
+           "bce": (log1m_t - log_t - log1m_w) / n_w.clamp_min(1.0)}
     if window is not None:
         out["on_mask"] = inter / n_t.clamp_min(1.0)
         out["on_ring"] = (mass - inter) / (n_w - n_t).clamp_min(1.0)

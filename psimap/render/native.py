@@ -315,3 +315,20 @@ def instance_distribution(dot: torch.Tensor, m2: torch.Tensor, p_thing: torch.Te
     if p_thing is not None and (p_thing.dtype != torch.float32 or p_thing.shape != dot.shape[:1]):
         raise ValueError("instance_distribution: p_thing [V] float32")
     return _FieldDistribution.apply(dot, m2, p_thing, float(temperature))
+
+
+def match_sums(x: torch.Tensor, codes: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    """The Hungarian matching's per-mask sums [5, M, Q] float64 over x [P, Q] float32 (a view's
+    rendered query probabilities, pixel-major) clamped to [lo, hi]: x, log x and log(1 - x) on each
+    mask, x and log(1 - x) on its window; codes [M, P] uint8 (0: outside mask m's window, 1: in it,
+    2: on the mask). psimap.panoptic.matching.match_sums_reference is the torch form (csrc/match_lanes.inl).
+    On the calling thread."""
+    if x.dtype != torch.float32 or codes.dtype != torch.uint8 or x.dim() != 2 or codes.dim() != 2 \
+            or codes.shape[1] != x.shape[0]:
+        raise ValueError("match_sums: x [P, Q] float32 and codes [M, P] uint8")
+    p, q = x.shape
+    m = codes.shape[0]
+    sums = _empty((5, m, q), np.float64)
+    _native.match_sums(np.ascontiguousarray(x.detach().numpy()), np.ascontiguousarray(codes.numpy()),
+                       p, q, m, float(lo), float(hi), sums)
+    return torch.from_numpy(sums)

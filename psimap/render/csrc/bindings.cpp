@@ -1,5 +1,6 @@
 // nanobind module psimap.render._native: contiguous float32 / int32 numpy buffers in and out (no
 // torch headers). Output buffers are allocated (and, in tests, poisoned) by the caller.
+#include <algorithm>
 #include <stdexcept>
 #include <string>
 
@@ -248,6 +249,26 @@ NB_MODULE(_native, m) {
         nb::arg("dot"), nb::arg("m2"), nb::arg("p_thing"), nb::arg("soft"), nb::arg("v_out"), nb::arg("V"),
         nb::arg("Q"), nb::arg("temperature"), nb::arg("v_dot"), nb::arg("v_m2"), nb::arg("v_p_thing"),
         "Backward of field_distribution_forward: v_dot [V, Q], v_m2 [V, Q] float64, v_p_thing [V].");
+    m.def(
+        "match_sums",
+        [](Array<const float> x, Array<const uint8_t> codes, int64_t P, int64_t Q, int64_t M, float lo, float hi,
+           Array<double> sums) {
+            checked(x, static_cast<size_t>(P) * static_cast<size_t>(Q), "x");
+            checked(codes, static_cast<size_t>(P) * static_cast<size_t>(M), "codes");
+            checked(sums, 5 * static_cast<size_t>(M) * static_cast<size_t>(Q), "sums");
+            if (!(lo > 0.0f && hi < 1.0f && lo <= hi))
+                throw std::invalid_argument("psimap native: match_sums needs 0 < lo <= hi < 1");
+            std::vector<float> scratch(static_cast<size_t>(match_scratch_floats(Q, M)));
+            std::fill(sums.data(), sums.data() + sums.size(), 0.0);
+            // on the calling thread, as the field's distribution (see field_distribution_forward)
+            nb::gil_scoped_release release;
+            pixel_kernels().match_sums(x.data(), codes.data(), P, 0, P, Q, M, lo, hi, sums.data(), scratch.data());
+        },
+        nb::arg("x"), nb::arg("codes"), nb::arg("P"), nb::arg("Q"), nb::arg("M"), nb::arg("lo"), nb::arg("hi"),
+        nb::arg("sums"),
+        "The matching's sums [5, M, Q] float64 (x, log x, log(1 - x) on each mask; x, log(1 - x) on its "
+        "window) over x [P, Q] clamped to [lo, hi]; codes [M, P] uint8: 0 outside mask m's window, 1 in it, "
+        "2 on the mask.");
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
     bind_project<float>(m, "f32");

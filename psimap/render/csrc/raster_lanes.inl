@@ -536,10 +536,12 @@ void exp_values(const float* x, float* out, int64_t n) {
 
 // The panoptic field's fused per-surfel distribution on the same lanes (field_lanes.inl).
 #include "field_lanes.inl"
+// ... and the sums its Hungarian matching reads (match_lanes.inl).
+#include "match_lanes.inl"
 
 PixelKernels kernels() {
     return PixelKernels{PSIMAP_ISA_NAME,   kLanes,           &forward_tile, &backward_tile, &exp_values,
-                        &field_forward_rows, &field_backward_rows};
+                        &field_forward_rows, &field_backward_rows, &match_sums_rows};
 }
 
 }  // namespace PSIMAP_ISA_NS

@@ -143,6 +143,11 @@ constexpr int kGradT = 0, kGradCenter = 9, kGradDepthKey = 11, kGradNormal = 12,
 constexpr int kMaxLanes = 16;
 
 inline int64_t kernel_scratch_floats(int channels) { return static_cast<int64_t>(channels) * 16 + 16; }
+// match_sums' scratch: a row's three values and five block sums per mask, Q rounded up to the
+// widest lanes, then a byte per mask.
+inline int64_t match_scratch_floats(int64_t Q, int64_t M) {
+    return (3 + 5 * M) * ((Q + kMaxLanes - 1) / kMaxLanes * kMaxLanes) + M / 4 + 1;
+}
 
 // The pixel kernels compiled for one instruction set (raster_isa_*.cpp); every set gives the
 // same forward bits (the lanes are pixels: each makes the per-pixel decisions in the same order).
@@ -160,6 +165,10 @@ struct PixelKernels {
     void (*field_backward)(const float* dot, const double* m2, const float* p_thing, const float* soft,
                            const float* v_out, int64_t v0, int64_t v1, int64_t Q, float temperature,
                            float* v_dot, double* v_m2, float* v_p_thing);
+    // the matching's per-mask sums over pixels [p0, p1) (match_lanes.inl); scratch:
+    // match_scratch_floats(Q, M) floats
+    void (*match_sums)(const float* x, const uint8_t* codes, int64_t P, int64_t p0, int64_t p1, int64_t Q,
+                       int64_t M, float lo, float hi, double* sums, float* scratch);
 };
 
 // The kernels in use: the widest instruction set this CPU runs, unless select_kernels chose one.
