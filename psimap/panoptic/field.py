@@ -414,8 +414,10 @@ class PanopticField(nn.Module):
         p_thing = None
         if s > 0 and bool(self.class_thing.any()) and not bool(self.class_thing.all()):
             # p(q | g) = P(thing | g) softmax_q(A / T): stuff surfels (walls, floor) belong to no
-            # query, so the BCE on stuff pixels lowers P(thing) instead of the surfels' opacity
-            p_thing = softmax_last(sem_vis)[:, self.class_thing].sum(-1)
+            # query, so the BCE on stuff pixels lowers P(thing) instead of the surfels' opacity. A
+            # product with the thing indicator: the column gather and sum took twice as long
+            # (forward and backward, 17k surfels x 11 classes: 1.26 -> 0.68 ms)
+            p_thing = softmax_last(sem_vis) @ self.class_thing.to(sem_vis.dtype)
         dist = self.queries.distribution(f_vis, pos, fq, p_thing)                  # [V, Q]
         out = render(visible_idx, [dist, sem_vis], cfg.topk)
         hw = int(width) * int(height)
