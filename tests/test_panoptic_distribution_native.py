@@ -2,8 +2,8 @@
 psimap.render.native.instance_distribution) against its torch form
 (psimap.panoptic.queries.instance_distribution_reference).
 
-Oracle: the reference in float64 on float32-representable inputs (the kernel computes in float32,
-m2 rounded to float32 as the reference rounds it). Values of the distribution lie in [0, 1]: held
+Oracle: the reference in float64 on float32-representable inputs (the kernel computes in float32;
+m2 = terms x coef is summed in float64 and rounded to float32, as the oracle rounds it). Values of the distribution lie in [0, 1]: held
 to 4e-6 absolute (measured <= 1.1e-6 over 5 seeds x 6 row lengths x 3 instruction sets); gradients
 to 2e-5 of each gradient's largest magnitude (measured <= 5.5e-6: float32 sums over up to 93 queries). Row lengths cover a single lane, whole vectors and partial last vectors of every
 instruction set (4, 8 and 16 lanes)."""
@@ -29,26 +29,35 @@ def poison_outputs():
     native.POISON_OUTPUTS = False
 
 
-def inputs(v: int, q: int, seed: int):
-    """dot [V, Q] float32 (a few at +-60: saturated sigmoids), m2 [V, Q] float64 holding float32
-    values in [0, 200] (the cap, 160, exactly in some), p_thing [V] float32, upstream w [V, Q]."""
+def inputs(v: int, q: int, seed: int, k: int = 10):
+    """dot [V, Q] float32 (a few at +-60: saturated sigmoids), terms [V, K] and coef [Q, K] float64
+    with m2 = terms coef^T in [0, ~300] (query 0 past the cap, 160, on every surfel; surfel 1 at
+    m2 = 0 from every query), p_thing [V] float32, upstream w [V, Q]."""
     g = torch.Generator().manual_seed(seed)
     dot = torch.randn(v, q, generator=g) * 4
     dot[torch.rand(v, q, generator=g) < 0.03] = 60.0
     dot[torch.rand(v, q, generator=g) < 0.03] = -60.0
-    m2 = torch.rand(v, q, generator=g) * 200
-    m2[torch.rand(v, q, generator=g) < 0.05] = MAX_MAHALANOBIS2
+    terms = (0.5 + 0.5 * torch.rand(v, k, generator=g)).double()
+    terms[1] = 0.0
+    coef = (torch.rand(q, k, generator=g) * 30.0 / k).double()
+    coef[0] = 400.0 / k                                    # m2 >= 200 > the cap
     pt = torch.rand(v, generator=g)
     w = torch.randn(v, q, generator=g)
-    return dot, m2.double(), pt, w
+    return dot, terms, coef, pt, w
 
 
-def evaluate(fn, dot, m2, pt, w, dtype):
-    """(out, v_dot, v_m2, v_p_thing) of fn on leaves in `dtype` (m2 always float64)."""
-    leaves = [dot.to(dtype).requires_grad_(True), m2.clone().requires_grad_(True)]
+def reference(dot, terms, coef, pt, temperature):
+    """The torch form on m2 rounded to float32 (as the kernel rounds its float64 sums)."""
+    m2 = (terms @ coef.T).float().to(torch.float64)
+    return instance_distribution_reference(dot, m2, pt, temperature)
+
+
+def evaluate(fn, dot, terms, coef, pt, w, dtype):
+    """(out, v_dot, v_coef, v_p_thing) of fn on leaves in `dtype` (terms and coef always float64)."""
+    leaves = [dot.to(dtype).requires_grad_(True), coef.clone().requires_grad_(True)]
     if pt is not None:
         leaves.append(pt.to(dtype).requires_grad_(True))
-    out = fn(leaves[0], leaves[1], leaves[2] if pt is not None else None, 0.1)
+    out = fn(leaves[0], terms, leaves[1], leaves[2] if pt is not None else None, 0.1)
     grads = torch.autograd.grad((out * w.to(dtype)).sum(), leaves)
     return [out.detach().double(), *(g.double() for g in grads)]
 
@@ -58,32 +67,40 @@ def evaluate(fn, dot, m2, pt, w, dtype):
 def test_native_distribution_matches_the_reference_on_every_instruction_set(q, with_thing):
     from psimap.render import _native
 
-    dot, m2, pt, w = inputs(150, q, seed=q + 100 * with_thing)
+    dot, terms, coef, pt, w = inputs(150, q, seed=q + 100 * with_thing)
     pt = pt if with_thing else None
-    ref = evaluate(instance_distribution_reference, dot, m2, pt, w, torch.float64)
+    m2 = terms @ coef.T
+    far = torch.ones(150, dtype=torch.bool)
+    far[1] = False                                         # surfel 1: m2 = 0 (and no coefficient gradient)
+    assert float(m2[far, 0].min()) > MAX_MAHALANOBIS2 and (q == 1 or float(m2[:, 1:].max()) < MAX_MAHALANOBIS2)
+    ref = evaluate(reference, dot, terms, coef, pt, w, torch.float64)
     assert float(ref[0].sum(-1).max()) <= 1.0 + 1e-9
     try:
         for isa in _native.available_pixel_kernels():
             _native.use_pixel_kernels(isa)
-            got = evaluate(lambda *a: instance_distribution(*a, backend="native"), dot, m2, pt, w, torch.float32)
+            got = evaluate(lambda *a: instance_distribution(*a, backend="native"), dot, terms, coef, pt, w,
+                           torch.float32)
             torch.testing.assert_close(got[0], ref[0], rtol=0.0, atol=4e-6, msg=f"{isa}: values")
-            for name, a, b in zip(("dot", "m2", "p_thing"), got[1:], ref[1:]):
+            for name, a, b in zip(("dot", "coef", "p_thing"), got[1:], ref[1:]):
                 torch.testing.assert_close(a, b, rtol=0.0, atol=2e-5 * float(b.abs().max()) + 1e-12,
                                            msg=f"{isa}: gradient of {name}")
-            # beyond the cap the distance gets no gradient (the reference's clamp_max)
-            assert float(got[2][m2 > MAX_MAHALANOBIS2].abs().max()) == 0.0
+            # beyond the cap the distance gets no gradient (the reference's clamp_max): query 0's
+            # coefficients, past it on every surfel
+            assert float(got[2][0].abs().max()) == 0.0
+            if q > 1:
+                assert float(got[2][1:].abs().max()) > 0.0
     finally:
         _native.use_pixel_kernels("")
 
 
 def test_a_nan_row_stays_in_its_row():
     """A NaN input spoils its own surfel's row (as the reference's softmax does) and no other."""
-    dot, m2, pt, w = inputs(40, 17, seed=3)
-    clean = instance_distribution(dot, m2, pt, 0.1, backend="native")
+    dot, terms, coef, pt, w = inputs(40, 17, seed=3)
+    clean = instance_distribution(dot, terms, coef, pt, 0.1, backend="native")
     dot[5, 16] = float("nan")
-    m2[9, 0] = float("nan")
-    out = instance_distribution(dot, m2, pt, 0.1, backend="native")
-    ref = instance_distribution_reference(dot, m2, pt, 0.1)
+    terms[9, 0] = float("nan")
+    out = instance_distribution(dot, terms, coef, pt, 0.1, backend="native")
+    ref = reference(dot, terms, coef, pt, 0.1)
     for r in (5, 9):
         assert bool(out[r].isnan().all()) and bool(ref[r].isnan().all())
     rest = torch.ones(40, dtype=torch.bool)
@@ -116,10 +133,12 @@ def test_queries_distribution_runs_the_kernel_and_keeps_the_reference_value():
 def test_bad_shapes_and_dtypes_are_refused():
     from psimap.render.native import instance_distribution as fused
 
-    dot, m2, pt, _ = inputs(8, 4, seed=1)
+    dot, terms, coef, pt, _ = inputs(8, 4, seed=1)
     with pytest.raises(ValueError, match="float64"):
-        fused(dot, m2.float(), pt, 0.1)
+        fused(dot, terms.float(), coef, pt, 0.1)
+    with pytest.raises(ValueError, match="float64"):
+        fused(dot, terms, coef[:, :3], pt, 0.1)
     with pytest.raises(ValueError, match="p_thing"):
-        fused(dot, m2, pt[:5], 0.1)
+        fused(dot, terms, coef, pt[:5], 0.1)
     with pytest.raises(ValueError, match="native kernel"):
-        instance_distribution(dot.double(), m2, pt.double(), 0.1, backend="native")
+        instance_distribution(dot.double(), terms, coef, pt.double(), 0.1, backend="native")

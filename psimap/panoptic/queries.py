@@ -52,12 +52,15 @@ def instance_distribution_reference(dot: torch.Tensor, m2: torch.Tensor, p_thing
     return out if p_thing is None else out * p_thing.unsqueeze(-1)
 
 
-def instance_distribution(dot: torch.Tensor, m2: torch.Tensor, p_thing: torch.Tensor | None,
+def instance_distribution(dot: torch.Tensor, terms: torch.Tensor, coef: torch.Tensor, p_thing: torch.Tensor | None,
                           temperature: float, backend: str = "auto") -> torch.Tensor:
-    """instance_distribution_reference's value: the native fused kernel for float32 CPU tensors where it
-    is built (backend "auto" or "native"; "native" raises where it cannot run), else the torch form.
-    In torch the chain is ~9 passes over [V, Q] forward and ~13 backward, with two float64 / float32
-    casts of m2: 24 ms forward and backward at 17k surfels x 93 queries, 8 ms in the kernel."""
+    """instance_distribution_reference's value with m2 = terms @ coef.T (the surfels' quadratic
+    monomials [V, K] and the queries' coefficients [Q, K], float64: InstanceQueries.mahalanobis_terms):
+    the native fused kernel for float32 CPU tensors where it is built (backend "auto" or "native";
+    "native" raises where it cannot run), else the torch form. The kernel sums each row's distances
+    on its lanes: the [V, Q] float64 distances and their gradient are never built (at 93 queries
+    and a room view's 17k surfels, the two float64 products and those 12 MB tensors took ~10 ms of a
+    step). In torch the chain is ~9 passes over [V, Q] forward and ~13 backward."""
     native = backend in ("auto", "native") and dot.device.type == "cpu" and dot.dtype == torch.float32
     if native:
         from psimap.render.api import native_available
@@ -66,10 +69,11 @@ def instance_distribution(dot: torch.Tensor, m2: torch.Tensor, p_thing: torch.Te
     if backend == "native" and not native:
         raise ValueError("instance_distribution: the native kernel needs float32 CPU tensors and the built module")
     if not native:
-        return instance_distribution_reference(dot, m2, p_thing, temperature)
+        return instance_distribution_reference(dot, terms.to(torch.float64) @ coef.to(torch.float64).T, p_thing,
+                                               temperature)
     from psimap.render.native import instance_distribution as fused
 
-    return fused(dot, m2.to(torch.float64), p_thing, temperature)
+    return fused(dot, terms.to(torch.float64), coef.to(torch.float64), p_thing, temperature)
 
 
 class InstanceQueries(nn.Module):
@@ -140,14 +144,12 @@ class InstanceQueries(nn.Module):
         y = torch.einsum("qij,nqj->nqi", Linv, d)                    # |y|^2 = d^T Sigma^-1 d
         return (y * y).sum(-1)
 
-    def mahalanobis2(self, points: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
-        """Squared Mahalanobis distance of points [N, 3] to every query: [N, Q] in `dtype` (None: the
-        points' dtype; float64 is the product's own, no cast), as one matrix
-        product: d^T P d = x^T P x - 2 x^T P mu + mu^T P mu (P = Sigma^-1), i.e. the points'
-        quadratic monomials [N, 10] times [10, Q] coefficients. The per-query [N, 3] x [3, 3]
-        products of the readable form were a batched matmul of Q tiny matrices (~40 % of a panoptic
-        step's affinity). In float64 around the points' centre: the expanded terms cancel (a point
-        5 m from a 1 cm query: 2.5e5 - 2.5e5), which float32 would leave ~0.03 off."""
+    def mahalanobis_terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(terms [N, 10], coef [Q, 10]), float64, with terms @ coef.T the squared Mahalanobis distance
+        of points [N, 3] to every query: d^T P d = x^T P x - 2 x^T P mu + mu^T P mu (P = Sigma^-1),
+        the points' quadratic monomials times the queries' coefficients (differentiable in the
+        queries; the points are constants). In float64 around the points' centre: the expanded terms
+        cancel (a point 5 m from a 1 cm query: 2.5e5 - 2.5e5), which float32 would leave ~0.03 off."""
         L = self.chol().double()                                     # [Q, 3, 3]
         eye = torch.eye(3, dtype=L.dtype, device=L.device).expand_as(L)
         Linv = torch.linalg.solve_triangular(L, eye, upper=False)
@@ -158,10 +160,18 @@ class InstanceQueries(nn.Module):
         mu = self.mean.double() - centre                             # [Q, 3]
         p_mu = (prec @ mu.unsqueeze(-1)).squeeze(-1)                 # [Q, 3]
         i, j = (0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)
-        mono = torch.cat([x[:, i] * x[:, j] * torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=x.dtype),
-                          -2.0 * x, torch.ones_like(x[:, :1])], dim=1)                     # [N, 10]
+        terms = torch.cat([x[:, i] * x[:, j] * torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=x.dtype),
+                           -2.0 * x, torch.ones_like(x[:, :1])], dim=1)                     # [N, 10]
         coef = torch.cat([prec[:, i, j], p_mu, (mu * p_mu).sum(-1, keepdim=True)], dim=1)  # [Q, 10]
-        return (mono @ coef.T).to(dtype or points.dtype)   # may dip ~1e-12 below 0 by rounding: harmless
+        return terms, coef
+
+    def mahalanobis2(self, points: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """Squared Mahalanobis distance of points [N, 3] to every query: [N, Q] in `dtype` (None: the
+        points' dtype; float64 is the product's own, no cast), as one matrix product of
+        `mahalanobis_terms`. The per-query [N, 3] x [3, 3] products of the readable form were a
+        batched matmul of Q tiny matrices (~40 % of a panoptic step's affinity)."""
+        terms, coef = self.mahalanobis_terms(points)
+        return (terms @ coef.T).to(dtype or points.dtype)   # may dip ~1e-12 below 0 by rounding: harmless
 
     def attend(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor) -> torch.Tensor:
         """Frustum-constrained cross-attention: updated query features [Q, F].
@@ -195,8 +205,8 @@ class InstanceQueries(nn.Module):
         if self.count == 0:
             return surfel_feat.new_zeros(surfel_feat.shape[0], 0)
         fq = self.feature if query_feat is None else query_feat
-        return instance_distribution(surfel_feat @ fq.T, self.mahalanobis2(surfel_pos, torch.float64), p_thing,
-                                     self.temperature, backend)
+        terms, coef = self.mahalanobis_terms(surfel_pos)
+        return instance_distribution(surfel_feat @ fq.T, terms, coef, p_thing, self.temperature, backend)
 
     def add(self, feature: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> None:
         """Append queries (feature [A, F], mean [A, 3], cov [A, 3, 3]). Re-creates parameters."""

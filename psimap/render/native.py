@@ -282,39 +282,45 @@ class _FieldDistribution(torch.autograd.Function):
     psimap.panoptic.queries.instance_distribution_reference is the torch form it is held to."""
 
     @staticmethod
-    def forward(ctx, dot, m2, p_thing, temperature):
+    def forward(ctx, dot, terms, coef, p_thing, temperature):
         v, q = dot.shape
+        k = terms.shape[1]
         dot_np = np.ascontiguousarray(dot.detach().numpy())
-        m2_np = np.ascontiguousarray(m2.detach().numpy())
+        terms_np = np.ascontiguousarray(terms.detach().numpy())
+        coef_t = np.ascontiguousarray(coef.detach().numpy().T)
         pt_np = np.zeros(0, np.float32) if p_thing is None else np.ascontiguousarray(p_thing.detach().numpy())
         out, soft = _empty((v, q)), _empty((v, q))
-        _native.field_distribution_forward(dot_np, m2_np, pt_np, v, q, float(temperature), out, soft)
-        ctx.arrays = (dot_np, m2_np, pt_np, soft)
+        _native.field_distribution_forward(dot_np, terms_np, coef_t, pt_np, v, q, k, float(temperature), out, soft)
+        ctx.arrays = (dot_np, terms_np, coef_t, pt_np, soft)
         ctx.temperature = float(temperature)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, v_out):
-        dot_np, m2_np, pt_np, soft = ctx.arrays
+        dot_np, terms_np, coef_t, pt_np, soft = ctx.arrays
         v, q = soft.shape
-        v_dot, v_m2 = _empty((v, q)), _empty((v, q), np.float64)
+        k = terms_np.shape[1]
+        v_dot, v_coef_t = _empty((v, q)), _empty((k, q), np.float64)
         v_pt = _empty((v,)) if pt_np.size else np.zeros(0, np.float32)
-        _native.field_distribution_backward(dot_np, m2_np, pt_np, soft, _f32(v_out), v, q, ctx.temperature,
-                                            v_dot, v_m2, v_pt)
-        return (torch.from_numpy(v_dot), torch.from_numpy(v_m2),
+        _native.field_distribution_backward(dot_np, terms_np, coef_t, pt_np, soft, _f32(v_out), v, q, k,
+                                            ctx.temperature, v_dot, v_coef_t, v_pt)
+        return (torch.from_numpy(v_dot), None, torch.from_numpy(v_coef_t.T),
                 torch.from_numpy(v_pt) if pt_np.size else None, None)
 
 
-def instance_distribution(dot: torch.Tensor, m2: torch.Tensor, p_thing: torch.Tensor | None,
+def instance_distribution(dot: torch.Tensor, terms: torch.Tensor, coef: torch.Tensor, p_thing: torch.Tensor | None,
                           temperature: float) -> torch.Tensor:
-    """softmax_q(sigmoid(dot) exp(-min(m2, 160) / 2) / temperature) * p_thing: [V, Q] float32,
-    differentiable in dot [V, Q] float32, m2 [V, Q] float64 (squared Mahalanobis distances) and
-    p_thing [V] float32 (None: 1). CPU tensors, on the calling thread (csrc/bindings.cpp says why)."""
-    if dot.dtype != torch.float32 or m2.dtype != torch.float64 or dot.shape != m2.shape:
-        raise ValueError("instance_distribution: dot [V, Q] float32 and m2 [V, Q] float64")
+    """softmax_q(sigmoid(dot) exp(-min(m2, 160) / 2) / temperature) * p_thing: [V, Q] float32, with
+    m2 = terms @ coef.T in float64 (never built: each row's distances are summed on the kernel's
+    lanes); differentiable in dot [V, Q] float32, coef [Q, K] float64 (the queries' coefficients)
+    and p_thing [V] float32 (None: 1); terms [V, K] float64 (the surfels' monomials) are constants.
+    CPU tensors, on the calling thread (csrc/bindings.cpp says why)."""
+    if dot.dtype != torch.float32 or terms.dtype != torch.float64 or coef.dtype != torch.float64 \
+            or terms.shape[0] != dot.shape[0] or coef.shape[0] != dot.shape[1] or terms.shape[1] != coef.shape[1]:
+        raise ValueError("instance_distribution: dot [V, Q] float32, terms [V, K] and coef [Q, K] float64")
     if p_thing is not None and (p_thing.dtype != torch.float32 or p_thing.shape != dot.shape[:1]):
         raise ValueError("instance_distribution: p_thing [V] float32")
-    return _FieldDistribution.apply(dot, m2, p_thing, float(temperature))
+    return _FieldDistribution.apply(dot, terms, coef, p_thing, float(temperature))
 
 
 def match_sums(x: torch.Tensor, codes: torch.Tensor, lo: float, hi: float) -> torch.Tensor:

@@ -203,11 +203,12 @@ NB_MODULE(_native, m) {
         nb::arg("x"), nb::arg("out"), "The pixel kernels' exp (for x in [-6, 0]) into `out` (tests).");
     m.def(
         "field_distribution_forward",
-        [](Array<const float> dot, Array<const double> m2, Array<const float> p_thing, int64_t V,
-           int64_t Q, float temperature, Array<float> out, Array<float> soft) {
+        [](Array<const float> dot, Array<const double> terms, Array<const double> coef_t, Array<const float> p_thing,
+           int64_t V, int64_t Q, int64_t K, float temperature, Array<float> out, Array<float> soft) {
             const size_t n = static_cast<size_t>(V) * static_cast<size_t>(Q);
             checked(dot, n, "dot");
-            checked(m2, n, "m2");
+            checked(terms, static_cast<size_t>(V) * static_cast<size_t>(K), "terms");
+            checked(coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "coef_t");
             checked(out, n, "out");
             checked(soft, n, "soft");
             if (p_thing.size() != 0) checked(p_thing, static_cast<size_t>(V), "p_thing");
@@ -216,39 +217,43 @@ NB_MODULE(_native, m) {
             // builds the frozen blends or steps the surfel optimizer (psimap.panoptic.fit), and a team
             // of two waiting on that core took ~10 ms a room step where one thread took ~5
             nb::gil_scoped_release release;
-            pixel_kernels().field_forward(dot.data(), m2.data(), p_thing.size() ? p_thing.data() : nullptr, 0, V,
-                                          Q, temperature, out.data(), soft.data());
+            pixel_kernels().field_forward(dot.data(), terms.data(), coef_t.data(), K,
+                                          p_thing.size() ? p_thing.data() : nullptr, 0, V, Q, temperature, out.data(),
+                                          soft.data());
         },
-        nb::arg("dot"), nb::arg("m2"), nb::arg("p_thing"), nb::arg("V"), nb::arg("Q"), nb::arg("temperature"),
-        nb::arg("out"), nb::arg("soft"),
+        nb::arg("dot"), nb::arg("terms"), nb::arg("coef_t"), nb::arg("p_thing"), nb::arg("V"), nb::arg("Q"),
+        nb::arg("K"), nb::arg("temperature"), nb::arg("out"), nb::arg("soft"),
         "Panoptic field distribution softmax_q(sigmoid(dot) exp(-min(m2, 160) / 2) / T) * p_thing into "
-        "out [V, Q] (softmax into soft); p_thing empty = 1.");
+        "out [V, Q] (softmax into soft), m2 = terms [V, K] x coef_t [K, Q] in float64; p_thing empty = 1.");
     m.def(
         "field_distribution_backward",
-        [](Array<const float> dot, Array<const double> m2, Array<const float> p_thing, Array<const float> soft,
-           Array<const float> v_out, int64_t V, int64_t Q, float temperature, Array<float> v_dot,
-           Array<double> v_m2, Array<float> v_p_thing) {
+        [](Array<const float> dot, Array<const double> terms, Array<const double> coef_t, Array<const float> p_thing,
+           Array<const float> soft, Array<const float> v_out, int64_t V, int64_t Q, int64_t K, float temperature,
+           Array<float> v_dot, Array<double> v_coef_t, Array<float> v_p_thing) {
             const size_t n = static_cast<size_t>(V) * static_cast<size_t>(Q);
             checked(dot, n, "dot");
-            checked(m2, n, "m2");
+            checked(terms, static_cast<size_t>(V) * static_cast<size_t>(K), "terms");
+            checked(coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "coef_t");
             checked(soft, n, "soft");
             checked(v_out, n, "v_out");
             checked(v_dot, n, "v_dot");
-            checked(v_m2, n, "v_m2");
+            checked(v_coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "v_coef_t");
             const bool pt = p_thing.size() != 0;
             if (pt) {
                 checked(p_thing, static_cast<size_t>(V), "p_thing");
                 checked(v_p_thing, static_cast<size_t>(V), "v_p_thing");
             }
             if (!(temperature > 0.0f)) throw std::invalid_argument("psimap native: temperature must be > 0");
+            std::fill(v_coef_t.data(), v_coef_t.data() + v_coef_t.size(), 0.0);
             nb::gil_scoped_release release;
-            pixel_kernels().field_backward(dot.data(), m2.data(), pt ? p_thing.data() : nullptr, soft.data(),
-                                           v_out.data(), 0, V, Q, temperature, v_dot.data(), v_m2.data(),
-                                           pt ? v_p_thing.data() : nullptr);
+            pixel_kernels().field_backward(dot.data(), terms.data(), coef_t.data(), K, pt ? p_thing.data() : nullptr,
+                                           soft.data(), v_out.data(), 0, V, Q, temperature, v_dot.data(),
+                                           v_coef_t.data(), pt ? v_p_thing.data() : nullptr);
         },
-        nb::arg("dot"), nb::arg("m2"), nb::arg("p_thing"), nb::arg("soft"), nb::arg("v_out"), nb::arg("V"),
-        nb::arg("Q"), nb::arg("temperature"), nb::arg("v_dot"), nb::arg("v_m2"), nb::arg("v_p_thing"),
-        "Backward of field_distribution_forward: v_dot [V, Q], v_m2 [V, Q] float64, v_p_thing [V].");
+        nb::arg("dot"), nb::arg("terms"), nb::arg("coef_t"), nb::arg("p_thing"), nb::arg("soft"), nb::arg("v_out"),
+        nb::arg("V"), nb::arg("Q"), nb::arg("K"), nb::arg("temperature"), nb::arg("v_dot"), nb::arg("v_coef_t"),
+        nb::arg("v_p_thing"),
+        "Backward of field_distribution_forward: v_dot [V, Q], v_coef_t [K, Q] float64, v_p_thing [V].");
     m.def(
         "match_sums",
         [](Array<const float> x, Array<const uint8_t> codes, int64_t P, int64_t Q, int64_t M, float lo, float hi,

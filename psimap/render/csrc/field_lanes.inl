@@ -1,13 +1,18 @@
 // The panoptic field's per-surfel instance distribution (psimap.panoptic.queries,
 // `instance_distribution_reference` is the readable torch form the tests hold this to), fused:
+//   m2 = sum_k terms[v, k] coef[q, k] (float64, rounded to float32),
 //   s = sigmoid(dot), e = exp(-min(m2, kMaxM2) / 2), l = s e / T,
 //   out = softmax_q(l) * p_thing
 // over rows of Q queries, kLanes queries per vector. In torch it was ~9 passes over [V, Q]
 // forward and ~13 backward with their temporaries (two of them casts of m2 between float64 and
-// float32): 24 ms forward and backward at 17k surfels x 93 queries, 8 ms here. Included by raster_isa_*.cpp after
-// raster_lanes.inl, inside namespace psimap::PSIMAP_ISA_NS (simd_lanes.h is already there): the rows
-// [v0, v1) of a call, each computed alone (no OpenMP nor any shared inline function here; the
-// bindings call it on all rows).
+// float32): 24 ms forward and backward at 17k surfels x 93 queries, 8 ms here. The squared
+// Mahalanobis distances m2 are summed here from the surfels' quadratic monomials and the queries'
+// coefficients (InstanceQueries.mahalanobis_terms), and their gradient goes straight into the
+// coefficients': the [V, Q] float64 distances, their gradient and the two float64 products that
+// made and reduced them (~10 ms of a 93-query room step) are never built. Included by
+// raster_isa_*.cpp after raster_lanes.inl, inside namespace psimap::PSIMAP_ISA_NS (simd_lanes.h is
+// already there): the rows [v0, v1) of a call, each computed alone (no OpenMP nor any shared inline
+// function here; the bindings call it on all rows).
 
 namespace {
 
@@ -57,31 +62,44 @@ PSIMAP_LANE_FN vf load_f(const float* row, int64_t q0, int64_t Q) {
     return v;
 #endif
 }
-// float64 values rounded to float32 lane by lane (as torch's .to(torch.float32)).
-PSIMAP_LANE_FN vf load_d(const double* row, int64_t q0, int64_t Q) {
+// The float64 values of lanes [q0, q0 + kLanes) of a row as two halves (lanes past the row: 0).
+PSIMAP_LANE_FN void load_d_halves(const double* row, int64_t q0, int64_t Q, vd* lo, vd* hi) {
     const int n = tail_of(q0, Q);
-    vd lo, hi;
     if (n == kLanes) {
-        memcpy(&lo, row + q0, sizeof lo);
-        memcpy(&hi, row + q0 + kHalf, sizeof hi);
-        return to_float(lo, hi);
+        memcpy(lo, row + q0, sizeof *lo);
+        memcpy(hi, row + q0 + kHalf, sizeof *hi);
+        return;
     }
 #if PSIMAP_LANES == 16 && defined(__AVX512F__)
     const unsigned m = (1u << n) - 1u;
-    lo = reinterpret_cast<vd>(_mm512_maskz_loadu_pd(static_cast<__mmask8>(m & 0xffu), row + q0));
-    hi = reinterpret_cast<vd>(_mm512_maskz_loadu_pd(static_cast<__mmask8>(m >> 8), row + q0 + 8));
-    return to_float(lo, hi);
+    *lo = reinterpret_cast<vd>(_mm512_maskz_loadu_pd(static_cast<__mmask8>(m & 0xffu), row + q0));
+    *hi = reinterpret_cast<vd>(_mm512_maskz_loadu_pd(static_cast<__mmask8>(m >> 8), row + q0 + 8));
 #elif PSIMAP_LANES == 8 && defined(__AVX2__)
-    lo = reinterpret_cast<vd>(_mm256_maskload_pd(row + q0, first_lanes_d(n)));
-    hi = reinterpret_cast<vd>(_mm256_maskload_pd(row + q0 + 4, first_lanes_d(n - 4)));
-    return to_float(lo, hi);
+    *lo = reinterpret_cast<vd>(_mm256_maskload_pd(row + q0, first_lanes_d(n)));
+    *hi = reinterpret_cast<vd>(_mm256_maskload_pd(row + q0 + 4, first_lanes_d(n - 4)));
 #else
-    float a[kLanes] = {};
-    for (int l = 0; l < n; ++l) a[l] = static_cast<float>(row[q0 + l]);
-    vf v;
-    memcpy(&v, a, sizeof v);
-    return v;
+    double a[kLanes] = {};
+    for (int l = 0; l < n; ++l) a[l] = row[q0 + l];
+    memcpy(lo, a, sizeof *lo);
+    memcpy(hi, a + kHalf, sizeof *hi);
 #endif
+}
+// Adds lanes [q0, q0 + kLanes) of a float64 row, lanes past the row left alone.
+PSIMAP_LANE_FN void add_d_halves(double* row, int64_t q0, int64_t Q, vd lo, vd hi) {
+    vd a, b;
+    load_d_halves(row, q0, Q, &a, &b);
+    a += lo;
+    b += hi;
+    const int n = tail_of(q0, Q);
+    if (n == kLanes) {
+        memcpy(row + q0, &a, sizeof a);
+        memcpy(row + q0 + kHalf, &b, sizeof b);
+        return;
+    }
+    double t[kLanes];
+    memcpy(t, &a, sizeof a);
+    memcpy(t + kHalf, &b, sizeof b);
+    for (int l = 0; l < n; ++l) row[q0 + l] = t[l];
 }
 PSIMAP_LANE_FN void store_f(float* row, int64_t q0, int64_t Q, vf v) {
     const int n = tail_of(q0, Q);
@@ -96,29 +114,6 @@ PSIMAP_LANE_FN void store_f(float* row, int64_t q0, int64_t Q, vf v) {
 #else
     float a[kLanes];
     memcpy(a, &v, sizeof a);
-    for (int l = 0; l < n; ++l) row[q0 + l] = a[l];
-#endif
-}
-// float32 lanes widened to float64 (exact).
-PSIMAP_LANE_FN void store_d(double* row, int64_t q0, int64_t Q, vf v) {
-    const int n = tail_of(q0, Q);
-    const vd lo = lo_d(v), hi = hi_d(v);
-    if (n == kLanes) {
-        memcpy(row + q0, &lo, sizeof lo);
-        memcpy(row + q0 + kHalf, &hi, sizeof hi);
-        return;
-    }
-#if PSIMAP_LANES == 16 && defined(__AVX512F__)
-    const unsigned m = (1u << n) - 1u;
-    _mm512_mask_storeu_pd(row + q0, static_cast<__mmask8>(m & 0xffu), reinterpret_cast<__m512d>(lo));
-    _mm512_mask_storeu_pd(row + q0 + 8, static_cast<__mmask8>(m >> 8), reinterpret_cast<__m512d>(hi));
-#elif PSIMAP_LANES == 8 && defined(__AVX2__)
-    _mm256_maskstore_pd(row + q0, first_lanes_d(n), reinterpret_cast<__m256d>(lo));
-    _mm256_maskstore_pd(row + q0 + 4, first_lanes_d(n - 4), reinterpret_cast<__m256d>(hi));
-#else
-    double a[kLanes];
-    memcpy(a, &lo, sizeof lo);
-    memcpy(a + kHalf, &hi, sizeof hi);
     for (int l = 0; l < n; ++l) row[q0 + l] = a[l];
 #endif
 }
@@ -173,23 +168,38 @@ PSIMAP_LANE_FN void affinity_terms(vf dot, vf m2, vf* s, vf* e) {
     *e = exp_le0(-0.5f * min_of(m2, splat(kMaxM2)));
 }
 
+// m2 of a row's lanes: sum_k terms[k] coef_t[k, q] in float64 (k = 0 .. K-1, in order), rounded
+// to float32 as torch's cast of the float64 product rounds it.
+PSIMAP_LANE_FN vf m2_lanes(const double* terms, const double* coef_t, int64_t K, int64_t q0, int64_t Q) {
+    vd lo = vd{}, hi = vd{};
+    for (int64_t k = 0; k < K; ++k) {
+        vd c_lo, c_hi;
+        load_d_halves(coef_t + k * Q, q0, Q, &c_lo, &c_hi);
+        lo += terms[k] * c_lo;
+        hi += terms[k] * c_hi;
+    }
+    return to_float(lo, hi);
+}
+
 }  // namespace
 
-// Rows [v0, v1) of dot [V, Q] float32 (surfel . query features), m2 [V, Q] float64 (squared Mahalanobis),
-// p_thing [V] or null (factor 1): out [V, Q] the distribution, soft [V, Q] the softmax (saved for
-// the backward).
-void field_forward_rows(const float* dot, const double* m2, const float* p_thing, int64_t v0,
-                        int64_t v1, int64_t Q, float temperature, float* out, float* soft) {
+// Rows [v0, v1) of dot [V, Q] float32 (surfel . query features), the squared Mahalanobis distances
+// m2 = terms [V, K] x coef_t [K, Q] (float64: each surfel's quadratic monomials, each query's
+// coefficients, psimap.panoptic.queries.InstanceQueries.mahalanobis_terms), p_thing [V] or null
+// (factor 1): out [V, Q] the distribution, soft [V, Q] the softmax (saved for the backward).
+void field_forward_rows(const float* dot, const double* terms, const double* coef_t, int64_t K,
+                        const float* p_thing, int64_t v0, int64_t v1, int64_t Q, float temperature, float* out,
+                        float* soft) {
     const float inv_t = 1.0f / temperature;
     for (int64_t v = v0; v < v1; ++v) {
         const float* d_row = dot + v * Q;
-        const double* m_row = m2 + v * Q;
+        const double* t_row = terms + v * K;
         float* o_row = out + v * Q;
         float* s_row = soft + v * Q;
         vf mx = splat(-__builtin_inff());
         for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
             vf s, e;
-            affinity_terms(load_f(d_row, q0, Q), load_d(m_row, q0, Q), &s, &e);
+            affinity_terms(load_f(d_row, q0, Q), m2_lanes(t_row, coef_t, K, q0, Q), &s, &e);
             const vf l = (s * e) * inv_t;
             store_f(o_row, q0, Q, l);
             mx = select(real_lanes(q0, Q) & (l > mx), l, mx);
@@ -211,11 +221,12 @@ void field_forward_rows(const float* dot, const double* m2, const float* p_thing
     }
 }
 
-// The backward of field_distribution_forward for v_out [V, Q]: v_dot [V, Q] float32, v_m2 [V, Q]
-// float64 (0 where m2 > kMaxM2: the cap's gradient), v_p_thing [V] (written when p_thing is given).
-void field_backward_rows(const float* dot, const double* m2, const float* p_thing,
-                         const float* soft, const float* v_out, int64_t v0, int64_t v1, int64_t Q,
-                         float temperature, float* v_dot, double* v_m2, float* v_p_thing) {
+// The backward of field_distribution_forward for v_out [V, Q]: v_dot [V, Q] float32, v_coef_t [K, Q]
+// float64 added to (the terms are constants; m2's gradient is 0 where m2 > kMaxM2, the cap's),
+// v_p_thing [V] (written when p_thing is given).
+void field_backward_rows(const float* dot, const double* terms, const double* coef_t, int64_t K,
+                         const float* p_thing, const float* soft, const float* v_out, int64_t v0, int64_t v1,
+                         int64_t Q, float temperature, float* v_dot, double* v_coef_t, float* v_p_thing) {
     const float inv_t = 1.0f / temperature;
     for (int64_t v = v0; v < v1; ++v) {
         const float* s_row = soft + v * Q;
@@ -230,17 +241,19 @@ void field_backward_rows(const float* dot, const double* m2, const float* p_thin
         if (p_thing) v_p_thing[v] = row_sum(gp);
         const float c = row_sum(us);
         const float* d_row = dot + v * Q;
-        const double* m_row = m2 + v * Q;
+        const double* t_row = terms + v * K;
         float* vd_row = v_dot + v * Q;
-        double* vm_row = v_m2 + v * Q;
         for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
             const vf sm = load_f(s_row, q0, Q), g = load_f(g_row, q0, Q);
             const vf v_a = (sm * (g * pt - c)) * inv_t;        // through the softmax and 1/T
-            const vf m = load_d(m_row, q0, Q);
+            const vf m = m2_lanes(t_row, coef_t, K, q0, Q);
             vf s, e;
             affinity_terms(load_f(d_row, q0, Q), m, &s, &e);
             store_f(vd_row, q0, Q, (v_a * e) * ((1.0f - s) * s));
-            store_d(vm_row, q0, Q, select(m <= kMaxM2, ((v_a * s) * e) * -0.5f, vf{}));
+            // m2's gradient (0 past the cap) into the coefficients': v_coef_t[k, q] += terms[k] v_m2[q]
+            const vf v_m = select(m <= kMaxM2, ((v_a * s) * e) * -0.5f, vf{});
+            const vd lo = lo_d(v_m), hi = hi_d(v_m);
+            for (int64_t k = 0; k < K; ++k) add_d_halves(v_coef_t + k * Q, q0, Q, t_row[k] * lo, t_row[k] * hi);
         }
     }
 }

@@ -160,11 +160,12 @@ struct PixelKernels {
                      const BackwardGrads& g, const TileWork& work);  // fills work.grad_rows / grad_feat
     void (*exp)(const float* x, float* out, int64_t n);  // the kernels' exp_nonpositive, for tests
     // the panoptic field's per-surfel distribution on rows [v0, v1) (field_lanes.inl)
-    void (*field_forward)(const float* dot, const double* m2, const float* p_thing, int64_t v0, int64_t v1,
-                          int64_t Q, float temperature, float* out, float* soft);
-    void (*field_backward)(const float* dot, const double* m2, const float* p_thing, const float* soft,
-                           const float* v_out, int64_t v0, int64_t v1, int64_t Q, float temperature,
-                           float* v_dot, double* v_m2, float* v_p_thing);
+    void (*field_forward)(const float* dot, const double* terms, const double* coef_t, int64_t K,
+                          const float* p_thing, int64_t v0, int64_t v1, int64_t Q, float temperature, float* out,
+                          float* soft);
+    void (*field_backward)(const float* dot, const double* terms, const double* coef_t, int64_t K,
+                           const float* p_thing, const float* soft, const float* v_out, int64_t v0, int64_t v1,
+                           int64_t Q, float temperature, float* v_dot, double* v_coef_t, float* v_p_thing);
     // the matching's per-mask sums over pixels [p0, p1) (match_lanes.inl); scratch:
     // match_scratch_floats(Q, M) floats
     void (*match_sums)(const float* x, const uint8_t* codes, int64_t P, int64_t p0, int64_t p1, int64_t Q,
