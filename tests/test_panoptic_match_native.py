@@ -67,6 +67,8 @@ def test_native_sums_match_the_reference_on_every_instruction_set(q):
             got = match_sums(prob, t, win, CLAMP, backend="native").double()
             assert got.shape == (5, 4, q)
             torch.testing.assert_close(got, ref, rtol=1e-6, atol=1e-9, msg=f"{isa}")
+            # boolean masks mean the same (a bool + bool would be an or, not 0 / 1 / 2)
+            assert torch.equal(match_sums(prob, t.bool(), win.bool(), CLAMP, backend="native").double(), got)
     finally:
         _native.use_pixel_kernels("")
 

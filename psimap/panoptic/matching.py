@@ -139,7 +139,7 @@ def match_sums(prob: torch.Tensor, target: torch.Tensor, window: torch.Tensor | 
     from psimap.render.native import match_sums as fused
 
     # per mask and pixel: 0 outside the mask's window, 1 in it, 2 on the mask (the window holds it)
-    codes = (window + target).to(torch.uint8)                                                # [M, P]
+    codes = (window > 0).to(torch.uint8) + (target > 0).to(torch.uint8)                      # [M, P]
     return fused(prob.T, codes, clamp, 1 - clamp).to(prob.dtype)
 
 

@@ -6,7 +6,8 @@
 // with x clamped to [lo, hi] first. In torch these were a clamped copy, two logarithms and a
 // negation of every window pixel's row, each a [P, Q] temporary written and read back by three
 // matrix products: ~10 ms a step at 85 queries, ~2 ms at 21. Here each row is read once, its
-// logarithms stay in a row-sized scratch and the sums in float64 (no temporary of [P, Q]).
+// logarithms stay in a row-sized scratch, and the sums run in float32 over blocks of pixels, then
+// in float64 (no temporary of [P, Q]).
 // Included by raster_lanes.inl after field_lanes.inl, inside namespace psimap::PSIMAP_ISA_NS
 // (simd_lanes.h and field_lanes.inl's load_f are already there).
 
