@@ -159,13 +159,25 @@ class BlendBuilder:
 
 
 class _RowBlend(torch.autograd.Function):
-    """features [R, C] = A [R, V] @ f [V, C] with A a scipy CSR matrix; the backward multiplies by
-    its transpose (CSC: no transposed copy is built). scipy's products run ~2x torch's sparse CSR
-    ones here, and a CSR's row selection is a cheap slice."""
+    """features [R, C] = A [R, V] @ f [V, C] with A a scipy CSR matrix (float32): on the native
+    module's lanes (render.native.blend_rows, the same sums as scipy's product in the same order,
+    bit for bit; 20k rows x 8 entries: 93 columns 2.5 -> 1.1 ms, 16 columns 0.43 -> 0.16 ms), scipy's
+    where it is not built. The backward multiplies by the transpose in scipy (CSC: no transposed
+    copy is built; on the lanes the scatter into random surfel rows took as long). scipy's
+    products ran ~2x torch's sparse CSR ones here, and a CSR's row selection is a cheap slice."""
 
     @staticmethod
     def forward(ctx, f, A):
         ctx.A = A
+        ctx.native = f.dtype == torch.float32 and A.dtype == np.float32 and A.indices.size < 2 ** 31
+        if ctx.native:
+            from psimap.render.api import native_available
+
+            ctx.native = native_available()
+        if ctx.native:
+            from psimap.render.native import blend_rows
+
+            return blend_rows(A, f)
         return torch.from_numpy(A @ f.detach().contiguous().numpy())
 
     @staticmethod

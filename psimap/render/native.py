@@ -338,3 +338,18 @@ def match_sums(x: torch.Tensor, codes: torch.Tensor, lo: float, hi: float) -> to
     _native.match_sums(np.ascontiguousarray(x.detach().numpy()), np.ascontiguousarray(codes.numpy()),
                        p, q, m, float(lo), float(hi), sums)
     return torch.from_numpy(sums)
+
+
+def blend_rows(A, f: torch.Tensor) -> torch.Tensor:
+    """A @ f [R, C] for a scipy CSR matrix A [R, V] float32 (a frozen blend, psimap.panoptic.fit) and
+    f [V, C] float32: the sums scipy makes, in the same order (bit for bit), the features on the
+    kernel's lanes (csrc/blend_lanes.inl). On the calling thread."""
+    r, v = A.shape
+    data = np.asarray(A.data)
+    x = np.ascontiguousarray(f.detach().numpy())
+    if data.dtype != np.float32 or x.dtype != np.float32 or x.ndim != 2 or x.shape[0] != v:
+        raise ValueError("blend_rows: A float32 CSR [R, V] and f float32 [V, C]")
+    out = _empty((r, x.shape[1]))
+    _native.blend_rows(np.asarray(A.indptr, dtype=np.int64), np.asarray(A.indices, dtype=np.int32), data, x,
+                       r, v, x.shape[1], out)
+    return torch.from_numpy(out)

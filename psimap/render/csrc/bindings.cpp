@@ -274,6 +274,31 @@ NB_MODULE(_native, m) {
         "The matching's sums [5, M, Q] float64 (x, log x, log(1 - x) on each mask; x, log(1 - x) on its "
         "window) over x [P, Q] clamped to [lo, hi]; codes [M, P] uint8: 0 outside mask m's window, 1 in it, "
         "2 on the mask.");
+    m.def(
+        "blend_rows",
+        [](Array<const int64_t> indptr, Array<const int32_t> indices, Array<const float> data, Array<const float> f,
+           int64_t R, int64_t V, int64_t C, Array<float> out) {
+            checked(indptr, static_cast<size_t>(R) + 1, "indptr");
+            const int64_t* ip = indptr.data();
+            if (ip[0] != 0) throw std::invalid_argument("psimap native: blend_rows: indptr[0] != 0");
+            for (int64_t r = 0; r < R; ++r)
+                if (ip[r + 1] < ip[r]) throw std::invalid_argument("psimap native: blend_rows: indptr decreases");
+            const int64_t nnz = ip[R];
+            checked(indices, static_cast<size_t>(nnz), "indices");
+            checked(data, static_cast<size_t>(nnz), "data");
+            for (int64_t j = 0; j < nnz; ++j)   // a bad column would read outside f
+                if (indices.data()[j] < 0 || indices.data()[j] >= V)
+                    throw std::invalid_argument("psimap native: blend_rows: a column index out of range");
+            checked(f, static_cast<size_t>(V) * static_cast<size_t>(C), "f");
+            checked(out, static_cast<size_t>(R) * static_cast<size_t>(C), "out");
+            // on the calling thread, as the field's distribution (see field_distribution_forward)
+            nb::gil_scoped_release release;
+            pixel_kernels().blend_forward(ip, indices.data(), data.data(), f.data(), 0, R, C, out.data());
+        },
+        nb::arg("indptr"), nb::arg("indices"), nb::arg("data"), nb::arg("f"), nb::arg("R"), nb::arg("V"), nb::arg("C"),
+        nb::arg("out"),
+        "A [R, V] (CSR: indptr int64, indices int32, data float32) times f [V, C] float32 into out [R, C], each "
+        "sum in the order of A's entries (scipy's).");
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
     bind_project<float>(m, "f32");

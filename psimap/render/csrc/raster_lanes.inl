@@ -536,12 +536,15 @@ void exp_values(const float* x, float* out, int64_t n) {
 
 // The panoptic field's fused per-surfel distribution on the same lanes (field_lanes.inl).
 #include "field_lanes.inl"
-// ... and the sums its Hungarian matching reads (match_lanes.inl).
+// ... and the sums its Hungarian matching reads (match_lanes.inl), and its frozen-blend product
+// (blend_lanes.inl).
 #include "match_lanes.inl"
+#include "blend_lanes.inl"
 
 PixelKernels kernels() {
     return PixelKernels{PSIMAP_ISA_NAME,   kLanes,           &forward_tile, &backward_tile, &exp_values,
-                        &field_forward_rows, &field_backward_rows, &match_sums_rows};
+                        &field_forward_rows, &field_backward_rows, &match_sums_rows,
+                        &blend_rows_forward};
 }
 
 }  // namespace PSIMAP_ISA_NS

@@ -170,6 +170,9 @@ struct PixelKernels {
     // match_scratch_floats(Q, M) floats
     void (*match_sums)(const float* x, const uint8_t* codes, int64_t P, int64_t p0, int64_t p1, int64_t Q,
                        int64_t M, float lo, float hi, double* sums, float* scratch);
+    // the frozen blend's CSR product on rows [r0, r1) (blend_lanes.inl): out = A f
+    void (*blend_forward)(const int64_t* indptr, const int32_t* indices, const float* data, const float* f,
+                          int64_t r0, int64_t r1, int64_t C, float* out);
 };
 
 // The kernels in use: the widest instruction set this CPU runs, unless select_kernels chose one.
