@@ -172,13 +172,12 @@ class FrameLabels:
 
 
 @functools.lru_cache(maxsize=8)
-def tile_pixels(width: int, height: int, tile: int) -> torch.Tensor:
-    """[T, tile * tile] long flat pixel indices of each tile of a width x height image (tiles row
-    by row, T = ceil(W / tile) * ceil(H / tile)); -1 where an edge tile runs past the image."""
-    tw, th = -(-width // tile), -(-height // tile)
-    y, x = torch.arange(th * tile).unsqueeze(1), torch.arange(tw * tile).unsqueeze(0)
-    flat = torch.where((y < height) & (x < width), y * width + x, -1)          # [th * tile, tw * tile]
-    return flat.view(th, tile, tw, tile).permute(0, 2, 1, 3).reshape(th * tw, tile * tile)
+def pixel_tiles(width: int, height: int, tile: int) -> torch.Tensor:
+    """[H * W] long: the tile of each pixel of a width x height image, tiles tile x tile pixels
+    numbered row by row (ceil(W / tile) a row; edge tiles cut at the border)."""
+    tw = -(-width // tile)
+    y, x = torch.arange(height).unsqueeze(1), torch.arange(width).unsqueeze(0)
+    return ((y // tile) * tw + x // tile).flatten()
 
 
 def sample_pixels(width: int, height: int, n: int, tile: int, generator: torch.Generator | None = None,
@@ -195,17 +194,18 @@ def sample_pixels(width: int, height: int, n: int, tile: int, generator: torch.G
         return None
     if tile <= 0:
         return torch.randperm(hw, generator=generator)[:n]
-    tiles = tile_pixels(int(width), int(height), int(tile))
-    chosen = torch.zeros(tiles.shape[0], dtype=torch.bool)
+    n_tiles = -(-int(width) // tile) * -(-int(height) // tile)
+    chosen = torch.zeros(n_tiles, dtype=torch.bool)
     if seeds is not None and seeds.numel():
         tw = -(-int(width) // tile)
         chosen[(seeds // width) // tile * tw + (seeds % width) // tile] = True
     need = max(0, n // (tile * tile) - int(chosen.sum()))
     if need:
-        perm = torch.randperm(tiles.shape[0], generator=generator)
+        perm = torch.randperm(n_tiles, generator=generator)
         chosen[perm[~chosen[perm]][:need]] = True
-    rows = tiles[chosen].flatten()
-    return rows[rows >= 0].sort().values
+    # the chosen tiles' pixels in ascending order: a mask over the image (gathering the tiles' pixel
+    # lists and sorting them took ~3x as long, ~0.5 ms of a 320x240 step)
+    return torch.nonzero(chosen[pixel_tiles(int(width), int(height), int(tile))]).flatten()
 
 
 class PanopticField(nn.Module):
