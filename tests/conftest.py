@@ -29,3 +29,15 @@ def ring_checkpoint(tmp_path_factory):
         return path
 
     return make
+
+
+@pytest.fixture
+def poison_native_outputs():
+    """Every native output buffer starts as NaN (-1 / max for integers), so a value a kernel leaves
+    unwritten fails the test (psimap.render.native.POISON_OUTPUTS). Only where the native module is
+    built: use with a skip when it is not."""
+    import psimap.render.native as native
+
+    native.POISON_OUTPUTS = True
+    yield
+    native.POISON_OUTPUTS = False

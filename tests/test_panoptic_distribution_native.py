@@ -16,17 +16,9 @@ from psimap.panoptic.queries import (MAX_MAHALANOBIS2, InstanceQueries, instance
                                      instance_distribution_reference)
 from psimap.render.api import native_available
 
-pytestmark = pytest.mark.skipif(not native_available(), reason="native kernels not built")
-
-
-@pytest.fixture(autouse=True)
-def poison_outputs():
-    """Every native output buffer starts as NaN, so a value the kernel leaves unwritten fails."""
-    import psimap.render.native as native
-
-    native.POISON_OUTPUTS = True
-    yield
-    native.POISON_OUTPUTS = False
+# every native output buffer starts as NaN: a value a kernel forgets to write fails
+pytestmark = [pytest.mark.skipif(not native_available(), reason="native kernels not built"),
+              pytest.mark.usefixtures("poison_native_outputs")]
 
 
 def inputs(v: int, q: int, seed: int, k: int = 10):

@@ -15,18 +15,10 @@ import torch
 from psimap.panoptic.matching import hungarian_match, mask_windows, match_costs, match_sums, match_sums_reference
 from psimap.render.api import native_available
 
-pytestmark = pytest.mark.skipif(not native_available(), reason="native kernels not built")
+# every native output buffer starts as NaN: a value a kernel forgets to write fails
+pytestmark = [pytest.mark.skipif(not native_available(), reason="native kernels not built"),
+              pytest.mark.usefixtures("poison_native_outputs")]
 CLAMP = 1e-6
-
-
-@pytest.fixture(autouse=True)
-def poison_outputs():
-    """Every native output buffer starts as NaN: a sum the kernel forgets to start from 0 fails."""
-    import psimap.render.native as native
-
-    native.POISON_OUTPUTS = True
-    yield
-    native.POISON_OUTPUTS = False
 
 
 def scene(q: int, seed: int, h: int = 30, w: int = 40):

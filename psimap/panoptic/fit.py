@@ -169,7 +169,7 @@ class _RowBlend(torch.autograd.Function):
     @staticmethod
     def forward(ctx, f, A):
         ctx.A = A
-        ctx.native = f.dtype == torch.float32 and A.dtype == np.float32 and A.indices.size < 2 ** 31
+        ctx.native = f.dtype == torch.float32 and A.dtype == np.float32 and A.shape[1] < 2 ** 31   # int32 columns
         if ctx.native:
             from psimap.render.api import native_available
 
