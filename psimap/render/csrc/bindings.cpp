@@ -176,6 +176,17 @@ void bind_project(nb::module_& m, const char* suffix) {
         "Backward of stage 1: writes dL/d(means, quats, scales).");
 }
 
+// The inputs both field_distribution bindings read: dot [V, Q], terms [V, K], coef_t [K, Q], p_thing [V]
+// or empty, temperature > 0.
+void check_field_inputs(Array<const float>& dot, Array<const double>& terms, Array<const double>& coef_t,
+                        Array<const float>& p_thing, int64_t V, int64_t Q, int64_t K, float temperature) {
+    checked(dot, static_cast<size_t>(V) * static_cast<size_t>(Q), "dot");
+    checked(terms, static_cast<size_t>(V) * static_cast<size_t>(K), "terms");
+    checked(coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "coef_t");
+    if (p_thing.size() != 0) checked(p_thing, static_cast<size_t>(V), "p_thing");
+    if (!(temperature > 0.0f)) throw std::invalid_argument("psimap native: temperature must be > 0");
+}
+
 }  // namespace
 
 NB_MODULE(_native, m) {
@@ -206,13 +217,9 @@ NB_MODULE(_native, m) {
         [](Array<const float> dot, Array<const double> terms, Array<const double> coef_t, Array<const float> p_thing,
            int64_t V, int64_t Q, int64_t K, float temperature, Array<float> out, Array<float> soft) {
             const size_t n = static_cast<size_t>(V) * static_cast<size_t>(Q);
-            checked(dot, n, "dot");
-            checked(terms, static_cast<size_t>(V) * static_cast<size_t>(K), "terms");
-            checked(coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "coef_t");
+            check_field_inputs(dot, terms, coef_t, p_thing, V, Q, K, temperature);
             checked(out, n, "out");
             checked(soft, n, "soft");
-            if (p_thing.size() != 0) checked(p_thing, static_cast<size_t>(V), "p_thing");
-            if (!(temperature > 0.0f)) throw std::invalid_argument("psimap native: temperature must be > 0");
             // all rows on the calling thread: the panoptic steps run on one core while the second
             // builds the frozen blends or steps the surfel optimizer (psimap.panoptic.fit), and a team
             // of two waiting on that core took ~10 ms a room step where one thread took ~5
@@ -231,19 +238,13 @@ NB_MODULE(_native, m) {
            Array<const float> soft, Array<const float> v_out, int64_t V, int64_t Q, int64_t K, float temperature,
            Array<float> v_dot, Array<double> v_coef_t, Array<float> v_p_thing) {
             const size_t n = static_cast<size_t>(V) * static_cast<size_t>(Q);
-            checked(dot, n, "dot");
-            checked(terms, static_cast<size_t>(V) * static_cast<size_t>(K), "terms");
-            checked(coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "coef_t");
+            check_field_inputs(dot, terms, coef_t, p_thing, V, Q, K, temperature);
             checked(soft, n, "soft");
             checked(v_out, n, "v_out");
             checked(v_dot, n, "v_dot");
             checked(v_coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "v_coef_t");
             const bool pt = p_thing.size() != 0;
-            if (pt) {
-                checked(p_thing, static_cast<size_t>(V), "p_thing");
-                checked(v_p_thing, static_cast<size_t>(V), "v_p_thing");
-            }
-            if (!(temperature > 0.0f)) throw std::invalid_argument("psimap native: temperature must be > 0");
+            if (pt) checked(v_p_thing, static_cast<size_t>(V), "v_p_thing");
             std::fill(v_coef_t.data(), v_coef_t.data() + v_coef_t.size(), 0.0);
             nb::gil_scoped_release release;
             pixel_kernels().field_backward(dot.data(), terms.data(), coef_t.data(), K, pt ? p_thing.data() : nullptr,
