@@ -620,3 +620,62 @@ def test_a_surfel_step_run_in_the_background_is_the_in_line_step():
     background.step(background=Lazy())                        # nothing to step (no gradients) ...
     background.current_labels(torch.zeros(50, 3))             # ... and the labels join it
     assert background._surfel_step is None
+
+
+def test_the_matched_queries_columns_rendered_again_give_the_full_renders_loss_and_gradients():
+    """On a frozen blend the step renders the queries without their gradient (the matching reads
+    them all) and the matched queries' columns again with it (BlendedPixels.columns): the same
+    losses and the same gradients, bit for bit, as the full render with its gradient gathered at
+    the matched columns (the generic path, which a render with only `at` takes); a frame with no
+    instance masks still gives every instance parameter a zero gradient, not none."""
+    from psimap.panoptic.field import PanopticField, init_queries
+    from psimap.panoptic.fit import frozen_blend, labelled, view_of, visible_surfels
+    from psimap.render.api import native_available
+
+    if not native_available():
+        pytest.skip("the frozen blend needs the native renderer")
+    s, frames, _ = _two_box_scene(n_frames=4)
+    views = labelled([view_of(f) for f in frames])
+    cfg = PanopticConfig(pixels_per_step=600)
+    geo = (s["means"], s["quats"], s["scales"], s["opacities"])
+
+    class OnlyAt:               # the generic path: a render with `at` but no `columns`
+        def __init__(self, rendered):
+            self.rendered = rendered
+
+        def at(self, rows):
+            return self.rendered.at(rows)
+
+    def run(wrap, instance_of=lambda v: v.instance):
+        g = torch.Generator().manual_seed(5)
+        queries = init_queries(views, CLASSES, cfg, scene_scale=2.0, generator=g)
+        field = PanopticField(s["means"].shape[0], CLASSES, queries, cfg, generator=g)
+        out = []
+        for v in views[:3]:
+            vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
+            blend = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, cfg.topk)
+            labels = field.frame_labels(instance_of(v), v.semantic)
+            pix = field.sample_pixels(v.width, v.height, labels, g)
+            part = blend.at_pixels(pix)
+            field.zero_grad()
+            l_ins, l_sem, info = field.losses(lambda idx, blocks, topk, part=part: wrap(part.render(blocks)),
+                                              s["means"], part.visible, instance_of(v), v.semantic, v.K,
+                                              v.viewmat, v.width, v.height, generator=g, depth=v.depth,
+                                              labels=labels, pixels=pix)
+            (l_ins + l_sem).backward()
+            grads = [p.grad for p in (field.instance, field.semantic, *field.queries.parameters())]
+            out.append((l_ins.detach(), l_sem.detach(), info["matched"], [None if t is None else t.clone()
+                                                                          for t in grads]))
+        return out
+
+    direct, generic = run(lambda r: r), run(OnlyAt)
+    assert sum(m for _, _, m, _ in direct) >= 3
+    for (a_ins, a_sem, a_m, a_g), (b_ins, b_sem, b_m, b_g) in zip(direct, generic):
+        assert a_m == b_m and torch.equal(a_ins, b_ins) and torch.equal(a_sem, b_sem)
+        for x, y in zip(a_g, b_g):
+            assert x is not None and y is not None and torch.equal(x, y)
+    # no instance masks: no match, yet every instance parameter's gradient is a zero tensor
+    for _, _, m, grads in run(lambda r: r, instance_of=lambda v: None):
+        assert m == 0
+        assert all(t is not None for t in grads)
+        assert float(grads[0].abs().sum()) == 0.0 and float(grads[1].abs().sum()) > 0.0

@@ -226,14 +226,17 @@ class BlendedPixels:
     """A frozen blend's render of feature blocks [V, C_i]: `at(rows)` computes only the pixel rows a
     step reads. One product per block: slicing one [R, sum C_i] render into the query and class
     columns cost each step two [R, sum C_i] zero-filled gradients and their copies in the backward
-    (~4 ms of a 160x120 step at 85 queries)."""
+    (~4 ms of a 160x120 step at 85 queries). `columns(b, cols)` renders some columns of block b
+    again on the rows of the last `at` (the matched queries: see PanopticField.losses)."""
 
     blend: FrozenBlend
     blocks: list
+    _A: object = None               # A at the rows of the last `at`
 
-    def at(self, rows: torch.Tensor | None) -> tuple[list, torch.Tensor]:
+    def at(self, rows: torch.Tensor | None, detach: tuple = ()) -> tuple[list, torch.Tensor]:
         """([features [R, C_i] per block], alpha [R]) at flat pixel indices rows [R]; None: every
-        pixel in order (every pixel the blend holds, for one made by `at_pixels`)."""
+        pixel in order (every pixel the blend holds, for one made by `at_pixels`). detach: indices
+        of blocks rendered without a gradient (their values only)."""
         alpha = self.blend.alpha.reshape(-1)
         A = self.blend.A
         if rows is not None and self.blend.rows is not None:
@@ -247,7 +250,16 @@ class BlendedPixels:
                 rows = local
         if rows is not None:
             A, alpha = A[rows.numpy()], alpha[rows]
-        return [_RowBlend.apply(f, A) for f in self.blocks], alpha
+        self._A = A
+        return [_RowBlend.apply(f.detach() if b in detach else f, A) for b, f in enumerate(self.blocks)], alpha
+
+    def columns(self, block: int, cols: torch.Tensor) -> torch.Tensor:
+        """[R, len(cols)] the columns cols [C'] (long) of block `block`, rendered on the rows of the
+        last `at` with their gradient: the same numbers as those columns of `at`'s render (each
+        column's sums are its own)."""
+        if self._A is None:
+            raise ValueError("BlendedPixels.columns: call at() first")
+        return _RowBlend.apply(self.blocks[block][:, cols], self._A)
 
 
 def frozen_blend(means, quats, scales, opacities, visible, w2c, K, width, height, topk: int,

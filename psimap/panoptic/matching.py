@@ -207,19 +207,23 @@ def hungarian_match(prob: torch.Tensor, target: torch.Tensor, *, class_cost: tor
 
 
 def matched_mask_loss(prob: torch.Tensor, target: torch.Tensor, match: Match, eps: float = 1.0,
-                      window: torch.Tensor | None = None) -> torch.Tensor:
-    """Dice + BCE over the matched pairs (differentiable in prob); 0 when nothing matched.
+                      window: torch.Tensor | None = None, matched: torch.Tensor | None = None) -> torch.Tensor:
+    """Dice + BCE over the matched pairs (differentiable in prob, or in `matched`); 0 when nothing
+    matched.
 
     prob [Q, P] in (0, 1), target [M, P] {0, 1}; window [M, P] (optional): Dice inside each mask's
     neighbourhood, as matched; BCE always over all pixels (it pushes the query's tail down
-    everywhere).
+    everywhere). matched [P, len(match.query_idx)] (optional): the matched queries' probabilities,
+    pixel-major, in their place (prob then need not carry a gradient).
     """
     if match.query_idx.numel() == 0:
         return prob.sum() * 0.0
     # the matched rows gathered as columns of prob.T: the field's prob is the transposed view of a
     # pixel-major render [P, Q], whose gradient then stays pixel-major (a row gather's gradient was
     # a [Q, P] block that the render's backward copied transposed: ~3 ms a step at 93 queries)
-    p = prob.T[:, match.query_idx].T.clamp(1e-6, 1 - 1e-6)
+    if matched is None:
+        matched = prob.T[:, match.query_idx]
+    p = matched.T.clamp(1e-6, 1 - 1e-6)
     t = target[match.mask_idx].to(p.dtype)
     inter = (p * t).sum(-1)
     mass = p.sum(-1) if window is None else (p * torch.maximum(window[match.mask_idx].to(p.dtype), t)).sum(-1)
