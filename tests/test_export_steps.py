@@ -202,6 +202,37 @@ def test_decimation_meets_budget_and_budget_controls_faces():
     assert missed < roomy.faces_after <= 1.16 * missed          # (the counts asked, not reached, close it)
 
 
+
+def test_decimation_probes_start_from_the_last_candidate_that_met_the_budget(monkeypatch):
+    # every probe after one that met the budget asks fewer faces: it simplifies that candidate,
+    # not the input (a simplification costs by the faces it starts from); the error stays measured
+    # against the input, so the budget holds as before
+    from psimap.exporters import decimate as D
+
+    s = trimesh.creation.icosphere(subdivisions=5, radius=0.1)       # 20480 faces
+    budget, real = 0.0008, D.simplify_to_count
+    probes = []                                 # (faces simplified, faces asked, error of the result)
+
+    def recording(mesh, faces, method="auto"):
+        out = real(mesh, faces, method)
+        probes.append((len(mesh.faces), int(faces), surface_distance(s, out)[0]))
+        return out
+
+    monkeypatch.setattr(D, "simplify_to_count", recording)
+    for cap in (None, 4000):
+        probes.clear()
+        r = D.decimate_to_budget(s, budget, max_faces=cap)
+        assert r.hausdorff <= r.budget and r.mesh.is_watertight
+        assert surface_distance(s, r.mesh)[0] <= budget * 1.1             # against the input itself
+        assert len(probes) >= 3 and all(start > asked for start, asked, _ in probes)
+        for k, (start, asked, _) in enumerate(probes):
+            # an earlier probe clearly within the budget, with more faces than this one asks
+            if any(e <= 0.9 * budget and a > asked for _, a, e in probes[:k]):
+                assert start < len(s.faces), (k, probes)
+        assert any(start < len(s.faces) for start, _, _ in probes)
+        if cap is not None:
+            assert probes[0][:2] == (len(s.faces), cap)                  # the cap first, from the input
+
 # ---------------------------------------------------------------- collision
 def test_primitives_are_recognised():
     ball = trimesh.creation.icosphere(3, radius=0.05).apply_translation([1, 2, 3])

@@ -37,9 +37,13 @@ def _objects():
     box = trimesh.creation.box(extents=[0.2, 0.1, 0.08]).apply_translation([0, 0, 0.04])
     can = trimesh.creation.cylinder(radius=0.04, height=0.14, sections=24).apply_translation([0.3, 0, 0.07])
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.04).apply_translation([0, 0.3, 0.04])
-    # a bowl-ish convex lump: a hull collider (CONVEX_MESH in Newton, a mesh geom in MuJoCo)
+    # a bowl-ish convex lump: a hull collider (CONVEX_MESH in Newton, a mesh geom in MuJoCo). Its
+    # rounded bottom must hold it up: radii of curvature there (a^2 / c: 10 and 7.2 cm) above its
+    # centre of mass (4 cm). At [1, 0.7, 0.6] the y one (4.1 cm) sat under the centre of mass
+    # (4.8 cm): it stood on the facets of its hull, and a decimation that placed them otherwise
+    # rolled it 7 cm in Newton
     lump = trimesh.convex.convex_hull(trimesh.creation.capsule(height=0.06, radius=0.05).vertices
-                                      * [1.0, 0.7, 0.6]).apply_translation([-0.3, 0, 0.0])
+                                      * [1.0, 0.85, 0.5]).apply_translation([-0.3, 0, 0.0])
     lump.apply_translation([0, 0, -lump.bounds[0][2]])
     return [build_object(m, lab, i + 1, completion="none")
             for i, (m, lab) in enumerate([(box, "box"), (can, "can"), (ball, "ball"), (lump, "lump")])]
