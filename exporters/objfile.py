@@ -2,9 +2,38 @@
 with deterministic names and a white diffuse factor so the texture shows at its true colour)."""
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
+
+# PNG encodings of textures by content: every writer (meshes/, the check's and the final MJCF's
+# assets/, USD) writes the same texture, and each PIL encode of it took ~25 ms (a room export
+# encoded each texture six times: 2.3 s); the newest TEXTURE_CACHE_SIZE are kept
+TEXTURE_CACHE_SIZE = 64
+_PNG_CACHE: OrderedDict = OrderedDict()
+
+
+def texture_png(image: np.ndarray) -> bytes:
+    """The PNG file of a texture, image uint8 [S, S, 3] (PIL's encoder with its default settings,
+    the bytes trimesh's exporter and PIL's save wrote), encoded once per content."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    a = np.ascontiguousarray(image)
+    key = (a.shape, str(a.dtype), hashlib.blake2b(a.data, digest_size=16).digest())
+    png = _PNG_CACHE.get(key)
+    if png is None:
+        buf = BytesIO()
+        Image.fromarray(a).save(buf, format="png")
+        png = _PNG_CACHE[key] = buf.getvalue()
+        while len(_PNG_CACHE) > TEXTURE_CACHE_SIZE:
+            _PNG_CACHE.popitem(last=False)
+    else:
+        _PNG_CACHE.move_to_end(key)
+    return png
 
 
 def write_textured_obj(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None,
@@ -16,11 +45,13 @@ def write_textured_obj(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray |
     [S, S, 3] or None; without a texture, vertex colours (float [V, 3]) are written when given.
     """
     import trimesh
-    from PIL import Image
 
     path = Path(path)
-    if uv is not None and image is not None:
-        mat = trimesh.visual.material.SimpleMaterial(image=Image.fromarray(image), name=name,
+    textured = uv is not None and image is not None
+    if textured:
+        # no image on the material: trimesh writes the OBJ's uv and the MTL, the texture's PNG
+        # (texture_png, encoded once) and its map_Kd line are added here, as trimesh wrote them
+        mat = trimesh.visual.material.SimpleMaterial(image=None, name=name,
                                                      diffuse=[255, 255, 255, 255],
                                                      ambient=[255, 255, 255, 255],
                                                      specular=[0, 0, 0, 255], glossiness=1.0)
@@ -32,6 +63,9 @@ def write_textured_obj(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray |
     text, files = trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_texture=True,
                                                   return_texture=True, mtl_name=f"{name}.mtl",
                                                   header=None, digits=7)
+    if textured:
+        files[f"{name}.mtl"] += f"\nmap_Kd {name}.png".encode()
+        files[f"{name}.png"] = texture_png(image)
     path.write_text(text)
     written = [path.name]
     for fname, data in sorted(files.items()):

@@ -95,8 +95,9 @@ def _bind_physics(prim, mat) -> None:
 
 
 def _visual(stage, parent: str, obj, origin: np.ndarray, assets: Path, rel_assets: str):
-    from PIL import Image
     from pxr import Sdf, UsdGeom, UsdShade, Vt
+
+    from psimap.exporters.objfile import texture_png
 
     v = np.asarray(obj.visual.vertices, np.float64) - origin
     mesh = _mesh_prim(stage, f"{parent}/visual", v, np.asarray(obj.visual.faces))
@@ -105,7 +106,7 @@ def _visual(stage, parent: str, obj, origin: np.ndarray, assets: Path, rel_asset
         st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
                                                      UsdGeom.Tokens.vertex)
         st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(obj.uv, np.float32)))
-        Image.fromarray(obj.texture).save(assets / f"{obj.name}.png", optimize=False)
+        (assets / f"{obj.name}.png").write_bytes(texture_png(obj.texture))
         tex_file = f"./{rel_assets}/{obj.name}.png"
     rgb = np.asarray(obj.vertex_rgb).mean(axis=0) if obj.vertex_rgb is not None else (0.6, 0.6, 0.6)
     mat = _material(stage, f"{parent}/Looks/{obj.name}_material", tex_file, rgb)

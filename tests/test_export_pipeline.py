@@ -2,6 +2,8 @@
 USD validation, the checkpoint path (Python API + `psimap export`), bad checkpoints."""
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import xml.etree.ElementTree as ET
 
@@ -63,6 +65,42 @@ def test_all_formats_deterministic_and_degenerate_skipped(objects, tmp_path):
     assert rep["check"]["passed"] and rep["usd_validation"]["errors"] == []
     assert r1["check"]["max_drift"] < 0.01
 
+
+
+def test_each_texture_is_encoded_once_for_every_writer(objects, tmp_path, monkeypatch):
+    """meshes/, the settle check's and the final MJCF's assets/ and the USD write one PNG file per
+    texture, encoded once (exporters.objfile.texture_png; the GLB's own encode is trimesh's): each
+    texture is encoded at most twice where it was six times; the files are the texture, and the
+    OBJ's material names its PNG as trimesh wrote it."""
+    from PIL import Image
+
+    from psimap.exporters import objfile
+    from psimap.exporters.pipeline import export_scene
+
+    objfile._PNG_CACHE.clear()
+    encodes, real = {}, Image.Image.save
+
+    def counting(self, fp, format=None, **params):
+        key = hashlib.sha1(np.asarray(self).tobytes()).hexdigest()
+        encodes[key] = encodes.get(key, 0) + 1
+        return real(self, fp, format, **params)
+
+    monkeypatch.setattr(Image.Image, "save", counting)
+    export_scene(objects, tmp_path / "t", "all")
+    monkeypatch.setattr(Image.Image, "save", real)
+    textured = [o for o in objects if o.texture is not None and (tmp_path / "t" / "meshes" / f"{o.name}.obj").exists()]
+    assert len(textured) >= 2
+    files = _files(tmp_path / "t")
+    for o in textured:
+        key = hashlib.sha1(np.ascontiguousarray(o.texture).tobytes()).hexdigest()
+        assert 1 <= encodes.get(key, 0) <= 2, (o.name, encodes.get(key))
+        pngs = [v for k, v in files.items() if k.endswith(f"/{o.name}.png")]
+        assert len(pngs) >= 2 and all(v == pngs[0] for v in pngs)
+        np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(pngs[0])).convert("RGB")), o.texture)
+        mtl = files[f"meshes/{o.name}.mtl"].decode()
+        assert mtl.splitlines()[-1] == f"map_Kd {o.name}.png" and mtl.startswith(f"newmtl {o.name}")
+        mesh = trimesh.load(tmp_path / "t" / "meshes" / f"{o.name}.obj", process=False)
+        assert mesh.visual.material.image.size == o.texture.shape[1::-1]
 
 def test_mjcf_structure(objects, tmp_path):
     import mujoco
