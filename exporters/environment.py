@@ -725,7 +725,9 @@ def _cut_away(mesh, tool, *, max_share: float):
         return mesh, 0.0
     m = cut.to_mesh()
     out = trimesh.Trimesh(np.asarray(m.vert_properties, np.float64)[:, :3], np.asarray(m.tri_verts), process=False)
-    if not (out.is_watertight and out.volume > 0):
+    # the cut's own volume, not trimesh's (its mass properties: ~0.1 s a call on a 90k-face solid,
+    # 1.4 s of a room's export); manifold3d's meshes are closed and outward, as the test asks
+    if not (out.is_watertight and cut.volume() > 0):
         return mesh, 0.0
     return out, removed
 
