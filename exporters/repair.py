@@ -44,13 +44,18 @@ def _clean(mesh):
 
 
 def _largest_components(mesh, fraction: float):
+    import trimesh
+
+    # the face-adjacency components counted first: most meshes are one piece, and split() builds
+    # a mesh per piece (the room export's 62 calls: 3.1 s, most of them for one piece)
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    if len(labels) == 0 or int(labels.max()) == 0:
+        return mesh, 0
     parts = mesh.split(only_watertight=False)
     if len(parts) <= 1:
         return mesh, 0
     areas = np.array([p.area for p in parts])
     keep = [p for p, a in zip(parts, areas) if a >= fraction * areas.max()]
-    import trimesh
-
     return trimesh.util.concatenate(keep), len(parts) - len(keep)
 
 
