@@ -63,6 +63,15 @@ def to_manifold(mesh):
     return cached_on(mesh, "psimap.manifold", lambda: _build_manifold(mesh))
 
 
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Volume (m3) a closed mesh (vertices [V, 3], faces [F, 3]) encloses, negative when its faces
+    wind inward: the sum of its triangles' triple products / 6. Where only the sign or the volume
+    is asked: trimesh's `volume` computes all the mass properties (0.84 s of a room export's 297
+    conversions to manifold3d)."""
+    t = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    return float(np.einsum("ij,ij->", t[:, 0], np.cross(t[:, 1], t[:, 2]))) / 6.0
+
+
 def _build_manifold(mesh):
     import manifold3d
 
@@ -70,7 +79,7 @@ def _build_manifold(mesh):
         return manifold3d.Manifold()
     v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
     f = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
-    if mesh.volume < 0:     # inside-out input: flip so the boolean sees the right solid
+    if signed_volume(mesh.vertices, mesh.faces) < 0:     # inside-out input: flip so the boolean sees the right solid
         f = np.ascontiguousarray(f[:, ::-1])
     return manifold3d.Manifold(manifold3d.Mesh(vert_properties=v, tri_verts=f))
 

@@ -134,6 +134,15 @@ def test_neighbour_solids_are_kept_on_the_neighbour_until_it_changes():
     assert to_manifold(m) is first and first.bounding_box()[0] == pytest.approx(0.5)
     m.apply_translation([0.25, 0, 0])
     assert to_manifold(m).bounding_box()[0] == pytest.approx(0.75)
+    # the enclosed volume by its triangles' triple products (trimesh's, without its mass
+    # properties), negative inside out; an inside-out mesh is the same solid to manifold3d
+    from psimap.completion.meshops import signed_volume
+
+    ball = trimesh.creation.icosphere(3, radius=0.2).apply_translation([3.0, -2.0, 1.0])
+    assert signed_volume(ball.vertices, ball.faces) == pytest.approx(ball.volume, rel=1e-12)
+    assert signed_volume(ball.vertices, ball.faces[:, ::-1]) == pytest.approx(-ball.volume, rel=1e-12)
+    inside_out = trimesh.Trimesh(ball.vertices, ball.faces[:, ::-1], process=False)
+    assert to_manifold(inside_out).volume() == pytest.approx(ball.volume, rel=1e-5)
 
     y0 = 0.1
     gt = trimesh.creation.box([0.1, 0.06, 0.12])
