@@ -3,6 +3,7 @@ with deterministic names and a white diffuse factor so the texture shows at its 
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections import OrderedDict
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import numpy as np
 # encoded each texture six times: 2.3 s); the newest TEXTURE_CACHE_SIZE are kept
 TEXTURE_CACHE_SIZE = 64
 _PNG_CACHE: OrderedDict = OrderedDict()
+_PNG_LOCK = threading.Lock()           # exports may write from several threads (psimap batch)
 
 
 def texture_png(image: np.ndarray) -> bytes:
@@ -24,15 +26,18 @@ def texture_png(image: np.ndarray) -> bytes:
 
     a = np.ascontiguousarray(image)
     key = (a.shape, str(a.dtype), hashlib.blake2b(a.data, digest_size=16).digest())
-    png = _PNG_CACHE.get(key)
-    if png is None:
-        buf = BytesIO()
-        Image.fromarray(a).save(buf, format="png")
-        png = _PNG_CACHE[key] = buf.getvalue()
+    with _PNG_LOCK:
+        png = _PNG_CACHE.get(key)
+        if png is not None:
+            _PNG_CACHE.move_to_end(key)
+            return png
+    buf = BytesIO()
+    Image.fromarray(a).save(buf, format="png")
+    png = buf.getvalue()
+    with _PNG_LOCK:
+        _PNG_CACHE[key] = png
         while len(_PNG_CACHE) > TEXTURE_CACHE_SIZE:
             _PNG_CACHE.popitem(last=False)
-    else:
-        _PNG_CACHE.move_to_end(key)
     return png
 
 

@@ -237,3 +237,25 @@ def test_static_classes_get_the_larger_hull_cap(ckpt, monkeypatch):
     assert seen == {"box": 8}
     O.extract_scene(scene, completion="none", static_classes=frozenset({"box"}))
     assert seen == {"box": O.STATIC_MAX_HULLS} and O.STATIC_MAX_HULLS > 8
+
+
+def test_the_texture_cache_holds_the_newest_and_serves_threads():
+    """texture_png: PIL's PNG of the texture, the newest TEXTURE_CACHE_SIZE kept; writers on
+    several threads get the same bytes."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from PIL import Image
+
+    from psimap.exporters import objfile
+
+    objfile._PNG_CACHE.clear()
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 255, (8, 8, 3), dtype=np.uint8) for _ in range(objfile.TEXTURE_CACHE_SIZE + 5)]
+    with ThreadPoolExecutor(4) as pool:
+        out = list(pool.map(objfile.texture_png, images + images[-3:]))
+    assert len(objfile._PNG_CACHE) == objfile.TEXTURE_CACHE_SIZE
+    for img, png in zip(images + images[-3:], out):
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, format="png")
+        assert png == buf.getvalue()
+    assert objfile.texture_png(images[-1]) is objfile.texture_png(images[-1].copy())   # by content
