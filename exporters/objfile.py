@@ -20,9 +20,9 @@ _PNG_LOCK = threading.Lock()           # exports may write from several threads 
 def texture_png(image: np.ndarray) -> bytes:
     """The PNG file of a texture, image uint8 [S, S, 3] (PIL's encoder with its default settings,
     the bytes trimesh's exporter and PIL's save wrote), encoded once per content."""
-    from io import BytesIO
-
     from PIL import Image
+
+    from psimap.exporters.preview import png_bytes
 
     a = np.ascontiguousarray(image)
     key = (a.shape, str(a.dtype), hashlib.blake2b(a.data, digest_size=16).digest())
@@ -31,9 +31,7 @@ def texture_png(image: np.ndarray) -> bytes:
         if png is not None:
             _PNG_CACHE.move_to_end(key)
             return png
-    buf = BytesIO()
-    Image.fromarray(a).save(buf, format="png")
-    png = buf.getvalue()
+    png = png_bytes(Image.fromarray(a))
     with _PNG_LOCK:
         _PNG_CACHE[key] = png
         while len(_PNG_CACHE) > TEXTURE_CACHE_SIZE:

@@ -141,6 +141,8 @@ def test_neighbour_solids_are_kept_on_the_neighbour_until_it_changes():
     ball = trimesh.creation.icosphere(3, radius=0.2).apply_translation([3.0, -2.0, 1.0])
     assert signed_volume(ball.vertices, ball.faces) == pytest.approx(ball.volume, rel=1e-12)
     assert signed_volume(ball.vertices, ball.faces[:, ::-1]) == pytest.approx(-ball.volume, rel=1e-12)
+    far = ball.vertices + [1e5, -2e5, 3e4]        # georeferenced coordinates: no cancellation
+    assert signed_volume(far, ball.faces) == pytest.approx(ball.volume, rel=1e-6)
     inside_out = trimesh.Trimesh(ball.vertices, ball.faces[:, ::-1], process=False)
     assert to_manifold(inside_out).volume() == pytest.approx(ball.volume, rel=1e-5)
 

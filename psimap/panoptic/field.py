@@ -421,7 +421,8 @@ class PanopticField(nn.Module):
         dist = self.queries.distribution(f_vis, pos, fq, p_thing)                  # [V, Q]
         out = render(visible_idx, [dist, sem_vis], cfg.topk)
         hw = int(width) * int(height)
-        if hasattr(out, "columns"):
+        frozen = hasattr(out, "columns")
+        if frozen:
             # a frozen blend: the queries' render without its gradient (the matching reads it all, the
             # loss only the matched queries' columns, rendered again with it below): the [P, Q]
             # gradient, zero but in a few columns, and its product back onto the surfels are never
@@ -467,7 +468,7 @@ class PanopticField(nn.Module):
                                         class_cost=self._class_cost(prob, s_px, alpha_px, mask_cls),
                                         window=window)
                 if match.query_idx.numel():
-                    matched = out.columns(0, match.query_idx) if hasattr(out, "columns") else None
+                    matched = out.columns(0, match.query_idx) if frozen else None
                     l_ins = matched_mask_loss(prob, target, match, window=window, matched=matched)
                 self.matched[match.query_idx] += 1
                 mq = match.query_idx
