@@ -17,12 +17,19 @@ _PNG_CACHE: OrderedDict = OrderedDict()
 _PNG_LOCK = threading.Lock()           # exports may write from several threads (psimap batch)
 
 
+def png_bytes(image) -> bytes:
+    """A PIL image's PNG file (PIL's encoder with its default settings)."""
+    from io import BytesIO
+
+    buf = BytesIO()
+    image.save(buf, format="PNG")
+    return buf.getvalue()
+
+
 def texture_png(image: np.ndarray) -> bytes:
     """The PNG file of a texture, image uint8 [S, S, 3] (PIL's encoder with its default settings,
     the bytes trimesh's exporter and PIL's save wrote), encoded once per content."""
     from PIL import Image
-
-    from psimap.exporters.preview import png_bytes
 
     a = np.ascontiguousarray(image)
     key = (a.shape, str(a.dtype), hashlib.blake2b(a.data, digest_size=16).digest())

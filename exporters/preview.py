@@ -9,7 +9,6 @@ never a second simulation. With no offscreen OpenGL the export goes on without p
 """
 from __future__ import annotations
 
-import io
 import warnings
 
 import numpy as np
@@ -63,6 +62,8 @@ def start_preview(scene, xml, out_npz, settled: dict | None, *, labels: bool = F
 def finish_preview(pending, scene, check: dict | None, out_dir) -> tuple[dict, dict[str, bytes]]:
     """Wait for `pending`, write `out_dir/preview.png`; returns (report.json's "preview" entry,
     {object name: thumbnail PNG bytes}). No OpenGL: no file, the entry says why, a PreviewWarning."""
+    from psimap.exporters.objfile import png_bytes
+
     arrays, how = pending.result()
     if arrays is None:
         warnings.warn(f"no preview.png: {how}", PreviewWarning, stacklevel=2)
@@ -134,8 +135,3 @@ def _pnginfo():
 def save_png(image, path) -> None:
     image.save(path, format="PNG", pnginfo=_pnginfo())     # optimize: 4x the time, no smaller
 
-
-def png_bytes(image) -> bytes:
-    buf = io.BytesIO()
-    image.save(buf, format="PNG")
-    return buf.getvalue()
