@@ -23,6 +23,9 @@ class PanopticConfig:
     # 5-20 px mugs and bottles: their spawned queries are dropped as empty, where unmerged seeds
     # leave a spare query to take them over)
     init_merge: float = 0.0
+    # the semantic logits start from the labelled views' class votes on the surfels they see
+    # (psimap.panoptic.lift), not from zero; False = the uniform start
+    lift_semantic: bool = True
     # 2D masks smaller than this fraction of the image are ignored (5 px at 160x120: bottles and
     # balls there cover a median 7-20 px; the former 0.002 = 38 px ignored most of their masks)
     min_mask_fraction: float = 0.0003

@@ -393,6 +393,20 @@ class LabelSettle:
         return self.calm >= self.periods
 
 
+def lift_semantic_start(field: PanopticField, means: torch.Tensor, views) -> None:
+    """Start the field's semantic logits from the views' class votes (psimap.panoptic.lift)."""
+    from psimap.panoptic.field import id_to_column
+    from psimap.panoptic.lift import lifted_class_votes, vote_logits
+
+    s = field.class_ids.numel()
+    if s == 0:
+        return
+    columns = [None if fr.semantic is None else id_to_column(field.class_ids, fr.semantic.reshape(-1))
+               for fr in views]
+    with torch.no_grad():
+        field.semantic.copy_(vote_logits(lifted_class_votes(means, views, columns, s)))
+
+
 def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters: int, scene_scale: float,
                 rng: np.random.Generator, generator: torch.Generator, joint: JointGeometry | None = None,
                 backend: str = "auto", log=None, progress: bool = False,
@@ -427,6 +441,8 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     means, quats, scales, opac, colors = surfels()
     n = int(means.shape[0])
     field = PanopticField(n, classes, queries, cfg, generator=generator)
+    if cfg.lift_semantic:
+        lift_semantic_start(field, means.detach(), train_views)
     q0 = queries.count
     log(f"panoptic: {q0} initial queries from {min(cfg.init_frames, len(train_views))} frames, "
         f"{len(classes)} classes")
