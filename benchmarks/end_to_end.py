@@ -74,6 +74,20 @@ TRAIN_STAGES = ("prior", "geometry", "panoptic")
 # stage clock: exclusive wall / user / system seconds of wrapped functions
 
 
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), or the platform's processor string: rows measured on
+    different CPUs compare only within one (a session's machine may differ from the last one's)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or "unknown CPU"
+
+
 def _usage() -> tuple[float, float, float]:
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.perf_counter(), s.ru_utime + c.ru_utime, s.ru_stime + c.ru_stime
@@ -241,7 +255,7 @@ def report(rows: list[dict], write: bool = True) -> None:
         cpu.append([r["capture"], r["label"]] + [f"{st[s]['user']:.1f} / {st[s]['sys']:.1f}" for s in STAGES]
                    + [f"{ratio:.2f}"])
     runs = "; ".join(f"{r['capture']} / {r['label']}: {r['measured']}, commit {r['commit']}, load {r['load']}"
-                     for r in rows)
+                     + (f", {r['cpu']}" if r.get("cpu") else "") for r in rows)
 
     fig, ax = plt.subplots(figsize=(9, 0.55 * len(rows) + 1.6))
     names = [f"{r['capture']} ({r['label']})" for r in rows]
@@ -272,7 +286,9 @@ def report(rows: list[dict], write: bool = True) -> None:
               "prior + geometry + panoptic; panoptic share = panoptic / train. Quality: F1@5cm and "
               "Chamfer-L1 of the checkpoint's mesh, PQ of its rendered labels (psimap eval), object "
               "F-score at 2.5 cm over the ground-truth things and things found / dynamic of the export "
-              "(psimap eval EXPORT). Runs: " + runs + ".")
+              "(psimap eval EXPORT). Times compare only between rows measured on one CPU: rows that "
+              "name none were measured on the machine of the sessions up to 2026-11-25 (AVX-512, ~1.7x "
+              "faster than the AMD EPYC of the rows after it). Runs: " + runs + ".")
     head = []
     for r in rows:
         if r["capture"] == "tabletop" and r["label"] == labels[-1]:
@@ -316,7 +332,8 @@ def main() -> None:
             sys.exit(f"error: capture {name} failed (exit {p.returncode}); see {work / 'log.txt'}")
         row = json.loads((work / "row.json").read_text())
         row.update(label=a.label, commit=commit, measured=time.strftime("%Y-%m-%d %H:%M"),
-                   load=f"{load:.1f}-{os.getloadavg()[0]:.1f}", process_s=time.perf_counter() - t)
+                   load=f"{load:.1f}-{os.getloadavg()[0]:.1f}", process_s=time.perf_counter() - t,
+                   cpu=cpu_model())
         print(f"{name} ({a.label}): train {row['train']['wall']:.1f} s (panoptic "
               f"{row['stages']['panoptic']['wall']:.1f} s), export {row['export']['wall']:.1f} s; PQ {row['pq']:.3f}, "
               f"object F {row['object_f']:.3f}, F1 {row['f1']:.4f}", flush=True)
