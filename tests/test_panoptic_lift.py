@@ -28,6 +28,7 @@ def _point_at(u, v, z, w2c=torch.eye(4)):
 def test_seen_pixels_keep_the_centres_on_the_surface_the_view_sees():
     depth = _wall_depth(2.0)
     depth[0, 0] = 0.0                                             # no depth there
+    depth[4, 1] = float("nan")                                    # a broken depth pixel
     pts = torch.stack([
         _point_at(2, 3, 2.0),                                     # 0: on the wall -> pixel 3 * 8 + 2
         _point_at(5, 1, 2.0 + 0.09),                              # 1: within 5 % of 2 m: seen (noise)
@@ -39,6 +40,7 @@ def test_seen_pixels_keep_the_centres_on_the_surface_the_view_sees():
         torch.tensor([float("nan"), 0.0, 2.0], dtype=torch.float64),   # 7: not a number
         _point_at(7.4, 5.4, 2.0),                                 # 8: last pixel (rounds to 7, 5)
         _point_at(7.6, 2.0, 2.0),                                 # 9: rounds to column 8: outside
+        _point_at(1, 4, 2.0),                                     # 10: on the NaN depth pixel
     ]).float()
     idx, pix = seen_pixels(pts, depth, K, torch.eye(4))
     assert idx.tolist() == [0, 1, 8]
