@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import torch
 
-# A view sees a surfel centre when its depth there lies within this many metres, or this share of
-# the depth, of the centre's own depth (sensor noise grows with range): the cross-view test of
-# psimap.panoptic.associate
-SEEN_DISTANCE = 0.03
-SEEN_REL_DISTANCE = 0.05
+# A view sees a surfel centre when its depth there lies within SEEN_DISTANCE metres, or
+# SEEN_REL_DISTANCE of the depth, of the centre's own depth (sensor noise grows with range): the
+# cross-view test the query initialisation's mask association uses (associate.landing_ids)
+from psimap.panoptic.associate import SEEN_DISTANCE, SEEN_REL_DISTANCE
 
 
 def seen_pixels(means: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor
