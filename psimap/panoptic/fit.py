@@ -393,18 +393,21 @@ class LabelSettle:
         return self.calm >= self.periods
 
 
-def lift_semantic_start(field: PanopticField, means: torch.Tensor, views) -> None:
-    """Start the field's semantic logits from the views' class votes (psimap.panoptic.lift)."""
+def lift_semantic_start(field: PanopticField, means: torch.Tensor, views) -> float:
+    """Start the field's semantic logits from the views' class votes (psimap.panoptic.lift);
+    returns the share of the surfels some view voted on (the others keep the uniform start)."""
     from psimap.panoptic.field import id_to_column
     from psimap.panoptic.lift import lifted_class_votes, vote_logits
 
     s = field.class_ids.numel()
-    if s == 0:
-        return
+    if s == 0 or means.shape[0] == 0:
+        return 0.0
     columns = [None if fr.semantic is None else id_to_column(field.class_ids, fr.semantic.reshape(-1))
                for fr in views]
+    votes = lifted_class_votes(means, views, columns, s)
     with torch.no_grad():
-        field.semantic.copy_(vote_logits(lifted_class_votes(means, views, columns, s)))
+        field.semantic.copy_(vote_logits(votes))
+    return float((votes.sum(-1) > 0).float().mean())
 
 
 def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters: int, scene_scale: float,
@@ -441,8 +444,6 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
     means, quats, scales, opac, colors = surfels()
     n = int(means.shape[0])
     field = PanopticField(n, classes, queries, cfg, generator=generator)
-    if cfg.lift_semantic:
-        lift_semantic_start(field, means.detach(), train_views)
     q0 = queries.count
     log(f"panoptic: {q0} initial queries from {min(cfg.init_frames, len(train_views))} frames, "
         f"{len(classes)} classes")
@@ -463,6 +464,9 @@ def train_field(views, classes, cfg: PanopticConfig, surfels: Callable, *, iters
                                     initializer=torch.set_num_threads, initargs=(1,))
     with background, builder or nullcontext(), tqdm(total=iters, desc="panoptic", disable=not progress,
                                                     dynamic_ncols=True) as bar:
+        if cfg.lift_semantic:       # here: the first blends build meanwhile (~0.5 s on a 136k-surfel room)
+            seen = lift_semantic_start(field, means.detach(), train_views)
+            log(f"panoptic: semantic start from the views' class votes ({seen * 100:.0f} % of the surfels seen)")
         for step in range(iters):
             i = int(order[step])
             fr = train_views[i]
