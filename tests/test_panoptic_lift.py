@@ -4,7 +4,8 @@ import math
 import numpy as np
 import torch
 
-from psimap.panoptic.lift import SEEN_DISTANCE, lifted_class_votes, seen_pixels, vote_logits
+from psimap.panoptic.associate import SEEN_DISTANCE, seen_pixels
+from psimap.panoptic.lift import lifted_class_votes, vote_logits
 
 W, H = 8, 6
 K = torch.tensor([[4.0, 0, 3.5], [0, 4.0, 2.5], [0, 0, 1]])

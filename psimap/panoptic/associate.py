@@ -42,27 +42,46 @@ MIN_SEEN_POINTS = 5
 MIN_SEEN_SHARE = 0.2
 
 
-def landing_ids(points: np.ndarray, frame: MaskFrame) -> np.ndarray:
-    """The mask id [P] int64 each world point [P, 3] lands on in `frame` where the frame sees it:
-    0 on no mask, -1 where the frame does not see the point (outside the image, behind the camera,
-    no depth, or hidden behind / in front of the surface the frame sees there)."""
-    w2c = np.linalg.inv(frame.c2w)
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+def seen_pixels(means, depth, K, w2c):
+    """(point indices [P] long, their flat pixel indices [P] long) of the world points means [N, 3]
+    (torch) that a view with depth [H, W] (metres, 0 = invalid), intrinsics K [3, 3] and
+    world-to-camera w2c [4, 4] sees: in front of the camera, inside the image (pixel centres at
+    integers), and within max(SEEN_DISTANCE, SEEN_REL_DISTANCE x depth) of the view's valid depth
+    there (neither hidden behind nor in front of the surface it sees). In float64 whatever the
+    inputs' dtype; a NaN point or depth is not seen."""
+    import torch
+
+    h, w = depth.shape
+    m = torch.as_tensor(means).detach().double()
+    w2c = torch.as_tensor(w2c).double()
+    cam = m @ w2c[:3, :3].T + w2c[:3, 3]
     z = cam[:, 2]
-    h, w = frame.depth.shape
+    front = torch.nonzero(z > 1e-6).flatten()
+    if front.numel() == 0:
+        empty = torch.zeros(0, dtype=torch.long)
+        return empty, empty
+    uvw = cam[front] @ torch.as_tensor(K).double().T
+    u = torch.floor(uvw[:, 0] / uvw[:, 2] + 0.5)
+    v = torch.floor(uvw[:, 1] / uvw[:, 2] + 0.5)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)       # NaN coordinates compare False
+    idx = front[inside]
+    pix = v[inside].long() * w + u[inside].long()
+    d = torch.as_tensor(depth).reshape(-1)[pix].double()
+    seen = (d > 0) & ((z[idx] - d).abs() <= torch.clamp(SEEN_REL_DISTANCE * d, min=SEEN_DISTANCE))
+    return idx[seen], pix[seen]
+
+
+def landing_ids(points: np.ndarray, frame: MaskFrame) -> np.ndarray:
+    """The mask id [P] int64 each world point [P, 3] lands on in `frame` where the frame sees it
+    (seen_pixels): 0 on no mask, -1 where the frame does not see the point (outside the image,
+    behind the camera, no depth, or hidden behind / in front of the surface the frame sees there)."""
+    import torch
+
     out = np.full(len(points), -1, dtype=np.int64)
-    front = z > 1e-6
-    if not front.any():
-        return out
-    uvw = cam[front] @ np.asarray(frame.K, dtype=np.float64).T
-    u = np.floor(uvw[:, 0] / uvw[:, 2] + 0.5).astype(np.int64)     # pixel centres at integers
-    v = np.floor(uvw[:, 1] / uvw[:, 2] + 0.5).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    idx = np.flatnonzero(front)[inside]
-    u, v = u[inside], v[inside]
-    d = frame.depth[v, u].astype(np.float64)
-    seen = (d > 0) & (np.abs(z[idx] - d) <= np.maximum(SEEN_DISTANCE, SEEN_REL_DISTANCE * d))
-    out[idx[seen]] = frame.instance[v[seen], u[seen]]
+    idx, pix = seen_pixels(torch.from_numpy(np.asarray(points, dtype=np.float64)),
+                           torch.from_numpy(np.asarray(frame.depth)), np.asarray(frame.K, dtype=np.float64),
+                           np.linalg.inv(frame.c2w))
+    out[idx.numpy()] = np.asarray(frame.instance).reshape(-1)[pix.numpy()]
     return out
 
 

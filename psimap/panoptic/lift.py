@@ -12,37 +12,8 @@ from __future__ import annotations
 
 import torch
 
-# A view sees a surfel centre when its depth there lies within SEEN_DISTANCE metres, or
-# SEEN_REL_DISTANCE of the depth, of the centre's own depth (sensor noise grows with range): the
-# cross-view test the query initialisation's mask association uses (associate.landing_ids)
-from psimap.panoptic.associate import SEEN_DISTANCE, SEEN_REL_DISTANCE
-
-
-def seen_pixels(means: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(surfel indices [P] long, their flat pixel indices [P] long) of the surfel centres means [N, 3]
-    that a view with depth [H, W] (metres, 0 = invalid), intrinsics K [3, 3] and world-to-camera w2c
-    [4, 4] sees: in front of the camera, inside the image (pixel centres at integers), and within
-    SEEN_DISTANCE / SEEN_REL_DISTANCE of the view's valid depth there."""
-    h, w = depth.shape
-    m = means.detach().double()
-    R, t = w2c.double()[:3, :3], w2c.double()[:3, 3]
-    cam = m @ R.T + t
-    z = cam[:, 2]
-    front = torch.nonzero(z > 1e-6).flatten()
-    if front.numel() == 0:
-        empty = torch.zeros(0, dtype=torch.long)
-        return empty, empty
-    uvw = cam[front] @ K.double().T
-    u = torch.floor(uvw[:, 0] / uvw[:, 2] + 0.5)
-    v = torch.floor(uvw[:, 1] / uvw[:, 2] + 0.5)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)       # NaN coordinates compare False
-    idx = front[inside]
-    pix = v[inside].long() * w + u[inside].long()
-    d = depth.reshape(-1)[pix].double()
-    zi = z[idx]
-    seen = (d > 0) & ((zi - d).abs() <= torch.clamp(SEEN_REL_DISTANCE * d, min=SEEN_DISTANCE))
-    return idx[seen], pix[seen]
+# which surfel centres a view sees: the cross-view test of the query initialisation's mask association
+from psimap.panoptic.associate import seen_pixels
 
 
 def lifted_class_votes(means: torch.Tensor, views, columns: list, n_classes: int) -> torch.Tensor:
