@@ -239,7 +239,44 @@ class PanopticField(nn.Module):
         self.last_drops: dict[str, int] = {}          # {rule: queries dropped} at the last adjustment
         self._gen = generator
         self._surfel_step = None                     # the surfel features' step when run in the background
+        self._pos_codes = None                       # [N, 6 F'] the surfels' position codes (fix_positions)
+        self._affinity_at = None                     # (step, [N, Q]) affinity_all of the last adjustment
+        self._grad_buffers: dict = {}                # {name: ([N, C] gradient buffer, [V] rows it holds)}
         self._make_optimizers()
+
+    def fix_positions(self, means: torch.Tensor) -> None:
+        """The surfels stay at means [N, 3] from now on (frozen geometry): their position codes are
+        computed once here, and `losses` then reads them for the `means` it is given."""
+        with torch.no_grad():
+            self._pos_codes = self.queries.position_codes(means.detach())
+
+    def surfel_rows(self, name: str, idx: torch.Tensor) -> torch.Tensor:
+        """The rows idx [V] (all different: a view's surfels) of the per-surfel parameter `name`
+        ("semantic" [N, S] or "instance" [N, F]) as a leaf [V, C] whose gradient lands in the
+        parameter's: the same .grad as indexing the parameter would give, written into one buffer
+        [N, C] kept across steps (its last rows zeroed, the new ones copied in). The indexing's
+        backward allocated and zero-filled a fresh [N, C] tensor every step, then scattered into it:
+        ~3 ms of a 136k-surfel room step (fresh pages), where these row copies take ~0.4 ms. The
+        buffer is the parameter's .grad until the next step's gradient overwrites it."""
+        param = getattr(self, name)
+        rows = param.detach().index_select(0, idx).requires_grad_(param.requires_grad)
+        if param.requires_grad:
+            rows.register_hook(functools.partial(self._land_gradient, name, idx))
+        return rows
+
+    def _land_gradient(self, name: str, idx: torch.Tensor, v_rows: torch.Tensor) -> None:
+        param = getattr(self, name)
+        if param.grad is not None:             # accumulating onto a gradient the caller kept
+            param.grad.index_add_(0, idx, v_rows.to(param.grad.dtype))
+            return
+        buf, held = self._grad_buffers.get(name, (None, None))
+        if buf is None or buf.shape != param.shape or buf.dtype != param.dtype:
+            buf = torch.zeros_like(param)
+        elif held is not None:
+            buf.index_fill_(0, held, 0.0)
+        buf.index_copy_(0, idx, v_rows.to(buf.dtype))
+        self._grad_buffers[name] = (buf, idx)
+        param.grad = buf
 
     # ---- optimisation bookkeeping -------------------------------------------------------------
     def _make_optimizers(self) -> None:
@@ -267,6 +304,7 @@ class PanopticField(nn.Module):
             self._surfel_step = background.submit(self._step_surfels)
         self.opt_query.step()
         self.steps += 1
+        self._affinity_at = None
         if self._pending:
             self.wait_step()        # a spawn re-creates both optimizers
         self._spawn_pending()
@@ -407,10 +445,11 @@ class PanopticField(nn.Module):
         # pixels_per_step: every term is a sum over pixels, so no permutation and no gathered copy);
         # a frozen blend renders only these rows (a 640x480 frame: 20k of 307k)
         pix = self.sample_pixels(width, height, labels, generator) if isinstance(pixels, str) else pixels
-        pos = means.detach()[visible_idx]
-        f_vis = self.instance[visible_idx]
-        sem_vis = self.semantic[visible_idx]          # gathered once: each gather's backward is an [N, S] scatter
-        fq = self.queries.attend(f_vis, pos)
+        pos = means.detach().index_select(0, visible_idx)
+        f_vis = self.surfel_rows("instance", visible_idx)
+        sem_vis = self.surfel_rows("semantic", visible_idx)     # gathered once
+        codes = None if self._pos_codes is None else self._pos_codes.index_select(0, visible_idx)
+        fq = self.queries.attend(f_vis, pos, codes)
         p_thing = None
         if s > 0 and bool(self.class_thing.any()) and not bool(self.class_thing.all()):
             # p(q | g) = P(thing | g) softmax_q(A / T): stuff surfels (walls, floor) belong to no
@@ -553,7 +592,8 @@ class PanopticField(nn.Module):
     def global_query_features(self, means: torch.Tensor) -> torch.Tensor:
         """Query features attended over all surfels (used for scene-wide assignment / export)."""
         with torch.no_grad():
-            return self.queries.attend(self.instance.detach(), means.detach())
+            codes = self._pos_codes if self._pos_codes is not None and self._pos_codes.shape[0] == means.shape[0] else None
+            return self.queries.attend(self.instance.detach(), means.detach(), codes)
 
     def affinity_all(self, means: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         """A(q, g) for every surfel [N, Q] (chunked)."""
@@ -569,7 +609,8 @@ class PanopticField(nn.Module):
         q = self.queries.count
         if q <= 1:
             return 0
-        masks = self.affinity_all(means) > self.cfg.mask_affinity                   # [N, Q]
+        affinity = self.affinity_all(means)                                         # [N, Q]
+        masks = affinity > self.cfg.mask_affinity
         old_enough = (self.steps - self.born) >= self.cfg.adjust_every              # grace for new ones
         distinct = (self.comatched >= self.cfg.distinct_frames) if self.cfg.distinct_frames > 0 else None
         dup = duplicate_queries(masks, self.cfg.iom_threshold, distinct) & old_enough
@@ -605,6 +646,11 @@ class PanopticField(nn.Module):
             self.born = self.born[keep]
             self.uid = self.uid[keep]
             self._make_optimizers()
+            affinity = affinity[:, keep]
+        # until the next step: the kept queries' columns are what affinity_all would give again (a
+        # query's attended feature and Gaussian are its own), read by the settle test's
+        # current_labels at this same step (~80 ms of a room adjustment)
+        self._affinity_at = (self.steps, affinity)
         return removed
 
     def adjustment_due(self) -> bool:
@@ -650,7 +696,11 @@ class PanopticField(nn.Module):
             else:
                 col = torch.zeros(n, dtype=torch.long)
                 thing = torch.ones(n, dtype=torch.bool)
-            owner = self.uid[self.affinity_all(means).argmax(-1)] + 1 if q else torch.zeros(n, dtype=torch.long)
+            kept = self._affinity_at
+            affinity = kept[1] if kept is not None and kept[0] == self.steps and kept[1].shape == (n, q) else None
+            if affinity is None and q:
+                affinity = self.affinity_all(means)
+            owner = self.uid[affinity.argmax(-1)] + 1 if q else torch.zeros(n, dtype=torch.long)
             return col, torch.where(thing, owner, torch.zeros_like(owner))
 
     # ---- export -------------------------------------------------------------------------------

@@ -1,0 +1,178 @@
+"""The panoptic step's cheaper paths give what the plain ones give (issue #20): the per-surfel
+gradients landing in one kept buffer, the position codes of fixed surfels computed once, the
+settle test reading the adjustment's affinity, the mask loss's one-logarithm BCE."""
+import pytest
+import torch
+import torch.nn.functional as F
+
+from psimap.data.frames import ClassInfo
+from psimap.panoptic.config import PanopticConfig
+from psimap.panoptic.field import PanopticField
+from psimap.panoptic.matching import Match, matched_mask_loss
+from psimap.panoptic.queries import InstanceQueries, init_from_points
+
+CLASSES = [ClassInfo(1, "floor", False), ClassInfo(2, "box", True)]
+
+
+def _field(n=60, q=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    queries = InstanceQueries(torch.randn(q, 16, generator=g), torch.randn(q, 3, generator=g),
+                              0.3 * torch.eye(3).expand(q, 3, 3), scene_scale=3.0, generator=g)
+    field = PanopticField(n, CLASSES, queries, PanopticConfig(), generator=g)
+    with torch.no_grad():
+        field.semantic.normal_(generator=g)
+    return field
+
+
+def test_surfel_rows_land_the_indexing_gradient_in_one_kept_buffer():
+    """Three steps over different surfel subsets: each step's .grad equals that of indexing the
+    parameter, bit for bit (rows of the step's subset, zero elsewhere: the last step's rows are
+    cleared), in the same buffer every step; a gradient the caller kept is added to, not cleared."""
+    field = _field()
+    plain = {name: getattr(field, name).detach().clone().requires_grad_(True) for name in ("instance", "semantic")}
+    g = torch.Generator().manual_seed(1)
+    buffers = set()
+    for step in range(3):
+        idx = torch.randperm(60, generator=g)[: 20 + 10 * step].sort().values
+        w = {name: torch.randn(idx.numel(), p.shape[1], generator=g) for name, p in plain.items()}
+        field.zero_grad()
+        for p in plain.values():
+            p.grad = None
+        sum((field.surfel_rows(name, idx) * w[name]).sum() for name in plain).backward()
+        sum((p[idx] * w[name]).sum() for name, p in plain.items()).backward()
+        for name, p in plain.items():
+            assert torch.equal(getattr(field, name).grad, p.grad), (step, name)
+        buffers.add(field.instance.grad.data_ptr())
+    assert len(buffers) == 1
+    # no zero_grad: the second backward adds onto the kept gradient, as indexing would
+    idx = torch.arange(0, 60, 3)
+    (field.surfel_rows("instance", idx) * 2.0).sum().backward()
+    plain["instance"][idx].mul(2.0).sum().backward()
+    assert torch.equal(field.instance.grad, plain["instance"].grad)
+
+
+def test_fixed_position_codes_change_no_attention():
+    """fix_positions keeps the surfels' position codes: the steps' attention (losses pass the
+    visible rows' codes) and the scene-wide one give the same bits as encoding each time."""
+    field = _field(n=80, q=4, seed=2)
+    means = torch.randn(80, 3, generator=torch.Generator().manual_seed(3)) * 2.0
+    with torch.no_grad():
+        field.queries.gate.fill_(0.5)               # the attention's update counts (0 at the start)
+    idx = torch.arange(5, 70, 2)
+    before = field.global_query_features(means)
+    step = field.queries.attend(field.instance[idx], means[idx])
+    field.fix_positions(means)
+    assert torch.equal(field.global_query_features(means), before)
+    codes = field._pos_codes.index_select(0, idx)
+    assert torch.equal(field.queries.attend(field.instance[idx], means[idx], codes), step)
+    # a query's attended feature moves with the codes it is given (they are read, not ignored)
+    assert not torch.equal(field.queries.attend(field.instance[idx], means[idx], codes.flip(0)), step)
+
+
+def test_the_settle_labels_read_the_adjustments_affinity_only_at_its_step():
+    """current_labels right after adjust reads adjust's affinity (the kept queries' columns): the
+    labels computed afresh; after the next step it computes them again (features that moved in
+    between move the labels)."""
+    g = torch.Generator().manual_seed(0)
+    near = torch.randn(20, 3, generator=g) * 0.02
+    a, b, far = near + torch.tensor([0.0, 0, 2]), near + torch.tensor([0.5, 0, 2]), near + torch.tensor([9.0, 0, 2])
+    feat, mean, cov = init_from_points([a, far, b], 4, generator=g)
+    field = PanopticField(40, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov),
+                          PanopticConfig(feat_dim=4, smooth_k=0))
+    means = torch.cat([a, b])
+    with torch.no_grad():
+        field.instance[:20] = 4 * feat[0]
+        field.instance[20:] = 4 * feat[2]
+    field.steps = 1000
+    field.matched = torch.tensor([10.0, 0.0, 10.0])
+    field.visible = torch.tensor([10.0, 10.0, 10.0])
+    assert field.adjust(means) == 1
+    assert field._affinity_at is not None and field._affinity_at[1].shape == (40, 2)
+    cached = field.current_labels(means)
+    field._affinity_at = None
+    fresh = field.current_labels(means)
+    assert torch.equal(cached[0], fresh[0]) and torch.equal(cached[1], fresh[1])
+    assert cached[1][:20].unique().tolist() == [1] and cached[1][20:].unique().tolist() == [3]
+    field.adjust(means)
+    field.step()                                   # no gradients: nothing moves, but a new step
+    with torch.no_grad():                          # the clusters trade features
+        field.instance[:20] = 4 * feat[2]
+        field.instance[20:] = 4 * feat[0]
+        field.queries.mean.copy_(field.queries.mean.mean(0, keepdim=True))   # one place: features decide
+    later = field.current_labels(means)[1]
+    assert later[:20].unique().tolist() == [3] and later[20:].unique().tolist() == [1]
+
+
+@pytest.mark.parametrize("window", [False, True])
+def test_mask_loss_bce_is_the_textbook_one(window):
+    """The mask loss's BCE (one logarithm a pixel for a {0, 1} target) equals
+    F.binary_cross_entropy's to float rounding, value and gradient, with probabilities at the
+    clamp (0 and 1 exactly) and in between."""
+    g = torch.Generator().manual_seed(7)
+    q, m, p = 4, 3, 500
+    prob = torch.rand(q, p, generator=g)
+    prob[0, :50], prob[1, :50] = 0.0, 1.0
+    prob.requires_grad_(True)
+    target = (torch.rand(m, p, generator=g) > 0.7).float()
+    win = (torch.rand(m, p, generator=g) > 0.3).float() if window else None
+    match = Match(query_idx=torch.tensor([0, 1, 3]), mask_idx=torch.tensor([2, 0, 1]), cost=torch.zeros(3))
+    loss = matched_mask_loss(prob, target, match, window=win)
+    (v_prob,) = torch.autograd.grad(loss, prob)
+
+    def textbook(prob):
+        pp = prob[match.query_idx].clamp(1e-6, 1 - 1e-6)
+        t = target[match.mask_idx]
+        inter = (pp * t).sum(-1)
+        mass = pp.sum(-1) if win is None else (pp * torch.maximum(win[match.mask_idx], t)).sum(-1)
+        dice = 1.0 - (2.0 * inter + 1.0) / (mass + t.sum(-1) + 1.0)
+        return (dice + F.binary_cross_entropy(pp, t, reduction="none").mean(-1)).mean()
+
+    ref = textbook(prob)
+    (v_ref,) = torch.autograd.grad(ref, prob)
+    loss, ref = float(loss.detach()), float(ref.detach())
+    assert abs(loss - ref) <= 1e-6 * ref
+    assert torch.allclose(v_prob, v_ref, rtol=1e-5, atol=1e-9)
+    assert loss > 1.0                    # the clamped pixels' BCE is in it (-log 1e-6 = 13.8)
+
+
+def test_a_step_on_fixed_positions_is_the_step_that_encodes_them():
+    """Two-box scene, three views on frozen blends: the losses and every gradient of a field whose
+    positions were fixed (codes read per view) equal, bit for bit, those of one encoding each step."""
+    from test_panoptic_field import _two_box_scene
+
+    from psimap.panoptic.field import init_queries
+    from psimap.panoptic.fit import frozen_blend, labelled, view_of, visible_surfels
+    from psimap.render.api import native_available
+
+    if not native_available():
+        pytest.skip("the frozen blend needs the native renderer")
+    s, frames, _ = _two_box_scene(n_frames=4)
+    views = labelled([view_of(f) for f in frames])
+    cfg = PanopticConfig(pixels_per_step=600)
+    geo = (s["means"], s["quats"], s["scales"], s["opacities"])
+
+    def run(fixed):
+        g = torch.Generator().manual_seed(5)
+        field = PanopticField(s["means"].shape[0], CLASSES, init_queries(views, CLASSES, cfg, scene_scale=2.0,
+                                                                         generator=g), cfg, generator=g)
+        with torch.no_grad():
+            field.queries.gate.fill_(0.5)
+        if fixed:
+            field.fix_positions(s["means"])
+        out = []
+        for v in views[:3]:
+            vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
+            labels = field.frame_labels(v.instance, v.semantic)
+            pix = field.sample_pixels(v.width, v.height, labels, g)
+            part = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, cfg.topk).at_pixels(pix)
+            field.zero_grad()
+            l_ins, l_sem, _ = field.losses(lambda idx, blocks, topk, part=part: part.render(blocks), s["means"],
+                                           part.visible, v.instance, v.semantic, v.K, v.viewmat, v.width,
+                                           v.height, generator=g, depth=v.depth, labels=labels, pixels=pix)
+            (l_ins + l_sem).backward()
+            out.append([l_ins.detach(), l_sem.detach()] + [p.grad.clone() for p in field.queries.parameters()])
+        return out
+
+    for a, b in zip(run(False), run(True)):
+        assert all(torch.equal(x, y) for x, y in zip(a, b))
+    assert float(run(True)[0][0]) > 0.0
