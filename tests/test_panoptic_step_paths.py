@@ -135,9 +135,9 @@ def test_mask_loss_bce_is_the_textbook_one(window):
     assert loss > 1.0                    # the clamped pixels' BCE is in it (-log 1e-6 = 13.8)
 
 
-def test_a_step_on_fixed_positions_is_the_step_that_encodes_them():
-    """Two-box scene, three views on frozen blends: the losses and every gradient of a field whose
-    positions were fixed (codes read per view) equal, bit for bit, those of one encoding each step."""
+def _two_box_steps(fixed=False, semantic=True, views_n=3):
+    """[[l_ins, l_sem, every query parameter's gradient, the semantic logits' gradient]] of steps on
+    the first views of the two-box scene (frozen blends), a new field seeded alike each call."""
     from test_panoptic_field import _two_box_scene
 
     from psimap.panoptic.field import init_queries
@@ -150,29 +150,102 @@ def test_a_step_on_fixed_positions_is_the_step_that_encodes_them():
     views = labelled([view_of(f) for f in frames])
     cfg = PanopticConfig(pixels_per_step=600)
     geo = (s["means"], s["quats"], s["scales"], s["opacities"])
+    g = torch.Generator().manual_seed(5)
+    field = PanopticField(s["means"].shape[0], CLASSES, init_queries(views, CLASSES, cfg, scene_scale=2.0,
+                                                                     generator=g), cfg, generator=g)
+    with torch.no_grad():
+        field.queries.gate.fill_(0.5)
+    if fixed:
+        field.fix_positions(s["means"])
+    out = []
+    for v in views[:views_n]:
+        sem = v.semantic if semantic else None
+        vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
+        labels = field.frame_labels(v.instance, sem)
+        pix = field.sample_pixels(v.width, v.height, labels, g)
+        part = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, cfg.topk).at_pixels(pix)
+        field.zero_grad()
+        l_ins, l_sem, _ = field.losses(lambda idx, blocks, topk, part=part: part.render(blocks), s["means"],
+                                       part.visible, v.instance, sem, v.K, v.viewmat, v.width,
+                                       v.height, generator=g, depth=v.depth, labels=labels, pixels=pix)
+        (l_ins + l_sem).backward()
+        out.append([l_ins.detach(), l_sem.detach()] + [p.grad.clone() for p in field.queries.parameters()]
+                   + [field.semantic.grad.clone()])
+    return out
 
-    def run(fixed):
-        g = torch.Generator().manual_seed(5)
-        field = PanopticField(s["means"].shape[0], CLASSES, init_queries(views, CLASSES, cfg, scene_scale=2.0,
-                                                                         generator=g), cfg, generator=g)
-        with torch.no_grad():
-            field.queries.gate.fill_(0.5)
-        if fixed:
-            field.fix_positions(s["means"])
-        out = []
-        for v in views[:3]:
-            vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
-            labels = field.frame_labels(v.instance, v.semantic)
-            pix = field.sample_pixels(v.width, v.height, labels, g)
-            part = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, cfg.topk).at_pixels(pix)
-            field.zero_grad()
-            l_ins, l_sem, _ = field.losses(lambda idx, blocks, topk, part=part: part.render(blocks), s["means"],
-                                           part.visible, v.instance, v.semantic, v.K, v.viewmat, v.width,
-                                           v.height, generator=g, depth=v.depth, labels=labels, pixels=pix)
-            (l_ins + l_sem).backward()
-            out.append([l_ins.detach(), l_sem.detach()] + [p.grad.clone() for p in field.queries.parameters()])
-        return out
 
-    for a, b in zip(run(False), run(True)):
+def test_a_step_on_fixed_positions_is_the_step_that_encodes_them():
+    """Two-box scene, three views on frozen blends: the losses and every gradient of a field whose
+    positions were fixed (codes read per view) equal, bit for bit, those of one encoding each step."""
+    for a, b in zip(_two_box_steps(fixed=False), _two_box_steps(fixed=True)):
         assert all(torch.equal(x, y) for x, y in zip(a, b))
-    assert float(run(True)[0][0]) > 0.0
+    assert float(_two_box_steps(fixed=True, views_n=1)[0][0]) > 0.0
+
+
+def test_a_frame_without_semantic_labels_still_gives_a_zero_semantic_loss_with_its_graph():
+    """No semantic map: l_sem is a zero tensor that still reaches the class logits (their gradient
+    is a tensor, from the instance loss's P(thing)); with one, both losses are positive."""
+    for steps, labelled_sem in ((_two_box_steps(semantic=False, views_n=2), False),
+                                (_two_box_steps(semantic=True, views_n=2), True)):
+        for l_ins, l_sem, *grads in steps:
+            assert float(l_ins) > 0.0
+            assert (float(l_sem) > 0.0) == labelled_sem
+            assert all(torch.isfinite(t).all() for t in grads)
+
+
+def test_attention_projects_the_queries_not_the_surfels():
+    """attend moves W_k and W_v onto the queries' side ((W_q f_q) . (W_k k) = (W_k^T W_q f_q) . k,
+    sum_v a_v W_v f_v = W_v sum_v a_v f_v): the textbook cross-attention to float rounding, value and
+    every gradient, with non-identity projections and an open gate."""
+    import math
+
+    from psimap.panoptic.queries import positional_encoding
+
+    g = torch.Generator().manual_seed(11)
+    q = InstanceQueries(torch.randn(6, 16, generator=g), torch.randn(6, 3, generator=g),
+                        0.2 * torch.eye(3).expand(6, 3, 3), scene_scale=4.0, generator=g)
+    with torch.no_grad():
+        q.gate.fill_(0.7)
+        for lin in (q.w_q, q.w_k, q.w_v):
+            lin.weight.add_(0.3 * torch.randn(lin.weight.shape, generator=g))
+    pos = torch.randn(300, 3, generator=g)
+    feat = torch.randn(300, 16, generator=g).requires_grad_(True)
+    codes = positional_encoding(pos, q.n_freqs, q.scene_scale)
+
+    def textbook():
+        keys = feat + q.pos_proj(codes)
+        qk = q.w_q(q.feature) @ q.w_k(keys).T / math.sqrt(q.w_q.out_features)
+        return q.feature + torch.tanh(q.gate) * (torch.softmax(qk, -1) @ q.w_v(feat))
+
+    w = torch.randn(6, 16, generator=g)
+    params = [feat, *q.parameters()]
+    out, ref = q.attend(feat, pos, codes), textbook()
+    assert torch.allclose(out, ref, rtol=1e-5, atol=1e-5)
+    grads = torch.autograd.grad((out * w).sum(), params, allow_unused=True)
+    grads_ref = torch.autograd.grad((ref * w).sum(), params, allow_unused=True)
+    for a, b in zip(grads, grads_ref):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)
+    assert float(grads[0].abs().sum()) > 0 and float((out - q.feature).detach().abs().max()) > 0.05
+
+
+def test_semantic_loss_reads_only_the_labelled_covered_pixels():
+    """semantic_loss over every read pixel with the others ignored equals the cross-entropy of the
+    selected pixels (value and gradient, to float rounding); uncovered (alpha <= 0.5) and void
+    (column -1) pixels get no gradient; no pixel to read gives None."""
+    from psimap.panoptic.field import semantic_loss
+
+    g = torch.Generator().manual_seed(12)
+    s_px = torch.randn(400, 5, generator=g).requires_grad_(True)
+    alpha = torch.rand(400, generator=g)
+    alpha[:20] = 0.0
+    cols = torch.randint(-1, 5, (400,), generator=g)
+    loss = semantic_loss(s_px, alpha, cols)
+    ok = (cols >= 0) & (alpha > 0.5)
+    ref = F.nll_loss(torch.log_softmax(s_px[ok] / alpha[ok, None].clamp_min(1e-3), -1), cols[ok])
+    (v, ), (v_ref, ) = torch.autograd.grad(loss, s_px), torch.autograd.grad(ref, s_px)
+    assert abs(float(loss.detach()) - float(ref.detach())) <= 1e-6 * float(ref.detach())
+    assert torch.allclose(v, v_ref, rtol=1e-5, atol=1e-9)
+    assert float(v[~ok].abs().sum()) == 0.0 and float(v[ok].abs().sum()) > 0.0
+    assert semantic_loss(s_px, torch.zeros(400), cols) is None
