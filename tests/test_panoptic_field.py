@@ -337,10 +337,10 @@ def test_label_settle_counts_stuff_segments_not_the_surfels_a_thing_class_trades
     assert h["classes_changed"] == pytest.approx(10 / 3000) and h["instances_changed"] == pytest.approx(10 / 1010)
 
 
-def test_current_labels_name_each_query_for_its_whole_life():
-    """The settle rule's labels name a surfel's query by the id it was born with: dropping another
-    query, or spawning one, renames no surfel (by position, dropping query 1 renamed the surfels of
-    query 2, and every adjustment that dropped a query looked like a relabelling)."""
+def two_clusters_three_queries():
+    """(field, means [40, 3], query features [3, 4], the far points [20, 3]): two clusters of 20
+    surfels 0.5 m apart whose surfels carry the features of queries 0 and 2; query 1 sits 9 m away,
+    over nothing (the adjustment drops it once it has lived a period unmatched)."""
     from psimap.panoptic.field import PanopticField
     from psimap.panoptic.queries import InstanceQueries, init_from_points
 
@@ -350,10 +350,17 @@ def test_current_labels_name_each_query_for_its_whole_life():
     feat, mean, cov = init_from_points([a, far, b], 4, generator=g)
     field = PanopticField(40, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov),
                           PanopticConfig(feat_dim=4, smooth_k=0))
-    means = torch.cat([a, b])
     with torch.no_grad():                    # each cluster's surfels carry their query's feature
         field.instance[:20] = 4 * feat[0]
         field.instance[20:] = 4 * feat[2]
+    return field, torch.cat([a, b]), feat, far
+
+
+def test_current_labels_name_each_query_for_its_whole_life():
+    """The settle rule's labels name a surfel's query by the id it was born with: dropping another
+    query, or spawning one, renames no surfel (by position, dropping query 1 renamed the surfels of
+    query 2, and every adjustment that dropped a query looked like a relabelling)."""
+    field, means, feat, far = two_clusters_three_queries()
     _, before = field.current_labels(means)
     assert before[:20].unique().tolist() == [1] and before[20:].unique().tolist() == [3]
     field.steps = 1000                       # every query old enough to be judged
@@ -622,12 +629,13 @@ def test_a_surfel_step_run_in_the_background_is_the_in_line_step():
     assert background._surfel_step is None
 
 
-def test_the_matched_queries_columns_rendered_again_give_the_full_renders_loss_and_gradients():
-    """On a frozen blend the step renders the queries without their gradient (the matching reads
-    them all) and the matched queries' columns again with it (BlendedPixels.columns): the same
-    losses and the same gradients, bit for bit, as the full render with its gradient gathered at
-    the matched columns (the generic path, which a render with only `at` takes); a frame with no
-    instance masks still gives every instance parameter a zero gradient, not none."""
+def two_box_steps(views_n=3, wrap=lambda r: r, instance_of=lambda v: v.instance, semantic=True, fixed=False,
+                  gate=None):
+    """[(l_ins, l_sem, matched, [gradients of instance, semantic, every query parameter])] of
+    steps on the first views of the two-box scene on frozen blends (pixels_per_step 600), a new
+    field seeded alike each call. wrap: the render given to the losses (of the blend's render);
+    instance_of: a view's instance map; semantic: with the semantic maps; fixed: fix_positions
+    first; gate: the attention gate's value (None: its start, 0)."""
     from psimap.panoptic.field import PanopticField, init_queries
     from psimap.panoptic.fit import frozen_blend, labelled, view_of, visible_surfels
     from psimap.render.api import native_available
@@ -638,7 +646,40 @@ def test_the_matched_queries_columns_rendered_again_give_the_full_renders_loss_a
     views = labelled([view_of(f) for f in frames])
     cfg = PanopticConfig(pixels_per_step=600)
     geo = (s["means"], s["quats"], s["scales"], s["opacities"])
+    g = torch.Generator().manual_seed(5)
+    queries = init_queries(views, CLASSES, cfg, scene_scale=2.0, generator=g)
+    field = PanopticField(s["means"].shape[0], CLASSES, queries, cfg, generator=g)
+    if gate is not None:
+        with torch.no_grad():
+            field.queries.gate.fill_(gate)
+    if fixed:
+        field.fix_positions(s["means"])
+    out = []
+    for v in views[:views_n]:
+        sem = v.semantic if semantic else None
+        vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
+        blend = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, cfg.topk)
+        labels = field.frame_labels(instance_of(v), sem)
+        pix = field.sample_pixels(v.width, v.height, labels, g)
+        part = blend.at_pixels(pix)
+        field.zero_grad()
+        l_ins, l_sem, info = field.losses(lambda idx, blocks, topk, part=part: wrap(part.render(blocks)),
+                                          s["means"], part.visible, instance_of(v), sem, v.K,
+                                          v.viewmat, v.width, v.height, generator=g, depth=v.depth,
+                                          labels=labels, pixels=pix)
+        (l_ins + l_sem).backward()
+        grads = [p.grad for p in (field.instance, field.semantic, *field.queries.parameters())]
+        out.append((l_ins.detach(), l_sem.detach(), info["matched"],
+                    [None if t is None else t.clone() for t in grads]))
+    return out
 
+
+def test_the_matched_queries_columns_rendered_again_give_the_full_renders_loss_and_gradients():
+    """On a frozen blend the step renders the queries without their gradient (the matching reads
+    them all) and the matched queries' columns again with it (BlendedPixels.columns): the same
+    losses and the same gradients, bit for bit, as the full render with its gradient gathered at
+    the matched columns (the generic path, which a render with only `at` takes); a frame with no
+    instance masks still gives every instance parameter a zero gradient, not none."""
     class OnlyAt:               # the generic path: a render with `at` but no `columns`
         def __init__(self, rendered):
             self.rendered = rendered
@@ -647,26 +688,7 @@ def test_the_matched_queries_columns_rendered_again_give_the_full_renders_loss_a
             return self.rendered.at(rows)
 
     def run(wrap, instance_of=lambda v: v.instance):
-        g = torch.Generator().manual_seed(5)
-        queries = init_queries(views, CLASSES, cfg, scene_scale=2.0, generator=g)
-        field = PanopticField(s["means"].shape[0], CLASSES, queries, cfg, generator=g)
-        out = []
-        for v in views[:3]:
-            vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
-            blend = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, cfg.topk)
-            labels = field.frame_labels(instance_of(v), v.semantic)
-            pix = field.sample_pixels(v.width, v.height, labels, g)
-            part = blend.at_pixels(pix)
-            field.zero_grad()
-            l_ins, l_sem, info = field.losses(lambda idx, blocks, topk, part=part: wrap(part.render(blocks)),
-                                              s["means"], part.visible, instance_of(v), v.semantic, v.K,
-                                              v.viewmat, v.width, v.height, generator=g, depth=v.depth,
-                                              labels=labels, pixels=pix)
-            (l_ins + l_sem).backward()
-            grads = [p.grad for p in (field.instance, field.semantic, *field.queries.parameters())]
-            out.append((l_ins.detach(), l_sem.detach(), info["matched"], [None if t is None else t.clone()
-                                                                          for t in grads]))
-        return out
+        return two_box_steps(3, wrap, instance_of)
 
     direct, generic = run(lambda r: r), run(OnlyAt)
     assert sum(m for _, _, m, _ in direct) >= 3

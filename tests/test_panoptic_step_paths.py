@@ -73,16 +73,9 @@ def test_the_settle_labels_read_the_adjustments_affinity_only_at_its_step():
     """current_labels right after adjust reads adjust's affinity (the kept queries' columns): the
     labels computed afresh; after the next step it computes them again (features that moved in
     between move the labels)."""
-    g = torch.Generator().manual_seed(0)
-    near = torch.randn(20, 3, generator=g) * 0.02
-    a, b, far = near + torch.tensor([0.0, 0, 2]), near + torch.tensor([0.5, 0, 2]), near + torch.tensor([9.0, 0, 2])
-    feat, mean, cov = init_from_points([a, far, b], 4, generator=g)
-    field = PanopticField(40, [ClassInfo(1, "box", True)], InstanceQueries(feat, mean, cov),
-                          PanopticConfig(feat_dim=4, smooth_k=0))
-    means = torch.cat([a, b])
-    with torch.no_grad():
-        field.instance[:20] = 4 * feat[0]
-        field.instance[20:] = 4 * feat[2]
+    from test_panoptic_field import two_clusters_three_queries
+
+    field, means, feat, _ = two_clusters_three_queries()
     field.steps = 1000
     field.matched = torch.tensor([10.0, 0.0, 10.0])
     field.visible = torch.tensor([10.0, 10.0, 10.0])
@@ -135,62 +128,28 @@ def test_mask_loss_bce_is_the_textbook_one(window):
     assert loss > 1.0                    # the clamped pixels' BCE is in it (-log 1e-6 = 13.8)
 
 
-def _two_box_steps(fixed=False, semantic=True, views_n=3):
-    """[[l_ins, l_sem, every query parameter's gradient, the semantic logits' gradient]] of steps on
-    the first views of the two-box scene (frozen blends), a new field seeded alike each call."""
-    from test_panoptic_field import _two_box_scene
-
-    from psimap.panoptic.field import init_queries
-    from psimap.panoptic.fit import frozen_blend, labelled, view_of, visible_surfels
-    from psimap.render.api import native_available
-
-    if not native_available():
-        pytest.skip("the frozen blend needs the native renderer")
-    s, frames, _ = _two_box_scene(n_frames=4)
-    views = labelled([view_of(f) for f in frames])
-    cfg = PanopticConfig(pixels_per_step=600)
-    geo = (s["means"], s["quats"], s["scales"], s["opacities"])
-    g = torch.Generator().manual_seed(5)
-    field = PanopticField(s["means"].shape[0], CLASSES, init_queries(views, CLASSES, cfg, scene_scale=2.0,
-                                                                     generator=g), cfg, generator=g)
-    with torch.no_grad():
-        field.queries.gate.fill_(0.5)
-    if fixed:
-        field.fix_positions(s["means"])
-    out = []
-    for v in views[:views_n]:
-        sem = v.semantic if semantic else None
-        vis = visible_surfels(*geo, v.viewmat, v.K, v.width, v.height)
-        labels = field.frame_labels(v.instance, sem)
-        pix = field.sample_pixels(v.width, v.height, labels, g)
-        part = frozen_blend(*geo, vis, v.viewmat, v.K, v.width, v.height, cfg.topk).at_pixels(pix)
-        field.zero_grad()
-        l_ins, l_sem, _ = field.losses(lambda idx, blocks, topk, part=part: part.render(blocks), s["means"],
-                                       part.visible, v.instance, sem, v.K, v.viewmat, v.width,
-                                       v.height, generator=g, depth=v.depth, labels=labels, pixels=pix)
-        (l_ins + l_sem).backward()
-        out.append([l_ins.detach(), l_sem.detach()] + [p.grad.clone() for p in field.queries.parameters()]
-                   + [field.semantic.grad.clone()])
-    return out
-
-
 def test_a_step_on_fixed_positions_is_the_step_that_encodes_them():
     """Two-box scene, three views on frozen blends: the losses and every gradient of a field whose
     positions were fixed (codes read per view) equal, bit for bit, those of one encoding each step."""
-    for a, b in zip(_two_box_steps(fixed=False), _two_box_steps(fixed=True)):
-        assert all(torch.equal(x, y) for x, y in zip(a, b))
-    assert float(_two_box_steps(fixed=True, views_n=1)[0][0]) > 0.0
+    from test_panoptic_field import two_box_steps
+
+    encoded, fixed = two_box_steps(gate=0.5), two_box_steps(gate=0.5, fixed=True)
+    for (a_ins, a_sem, a_m, a_g), (b_ins, b_sem, b_m, b_g) in zip(encoded, fixed):
+        assert a_m == b_m and torch.equal(a_ins, b_ins) and torch.equal(a_sem, b_sem)
+        assert all(torch.equal(x, y) for x, y in zip(a_g, b_g))
+    assert float(fixed[0][0]) > 0.0
 
 
 def test_a_frame_without_semantic_labels_still_gives_a_zero_semantic_loss_with_its_graph():
     """No semantic map: l_sem is a zero tensor that still reaches the class logits (their gradient
     is a tensor, from the instance loss's P(thing)); with one, both losses are positive."""
-    for steps, labelled_sem in ((_two_box_steps(semantic=False, views_n=2), False),
-                                (_two_box_steps(semantic=True, views_n=2), True)):
-        for l_ins, l_sem, *grads in steps:
+    from test_panoptic_field import two_box_steps
+
+    for semantic in (False, True):
+        for l_ins, l_sem, _, grads in two_box_steps(2, semantic=semantic):
             assert float(l_ins) > 0.0
-            assert (float(l_sem) > 0.0) == labelled_sem
-            assert all(torch.isfinite(t).all() for t in grads)
+            assert (float(l_sem) > 0.0) == semantic
+            assert all(t is not None and bool(torch.isfinite(t).all()) for t in grads)
 
 
 def test_attention_projects_the_queries_not_the_surfels():
