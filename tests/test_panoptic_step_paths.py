@@ -208,3 +208,14 @@ def test_semantic_loss_reads_only_the_labelled_covered_pixels():
     assert torch.allclose(v, v_ref, rtol=1e-5, atol=1e-9)
     assert float(v[~ok].abs().sum()) == 0.0 and float(v[ok].abs().sum()) > 0.0
     assert semantic_loss(s_px, torch.zeros(400), cols) is None
+    # a NaN logit or alpha on a pixel the loss ignores stays out of the loss and the gradient
+    bad = s_px.detach().clone()
+    alpha_bad = alpha.clone()
+    off = torch.nonzero(~ok).flatten()
+    bad[off[0]] = float("nan")
+    alpha_bad[off[1]] = float("nan")
+    bad.requires_grad_(True)
+    loss_bad = semantic_loss(bad, alpha_bad, cols)
+    (v_bad, ) = torch.autograd.grad(loss_bad, bad)
+    assert float(loss_bad.detach()) == float(loss.detach())
+    assert bool(torch.isfinite(v_bad).all()) and torch.equal(v_bad, v)

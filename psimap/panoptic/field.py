@@ -30,11 +30,13 @@ def semantic_loss(s_px: torch.Tensor, alpha_px: torch.Tensor, cols: torch.Tensor
     the class columns cols [P] (-1 void) on the labelled, covered (alpha > 0.5) pixels; None when
     there is none. Over every pixel with the others ignored: the boolean selections of the logits
     and their scattered gradient cost more (~1.5 ms of a room step) than the log-softmax of the few
-    pixels left out."""
+    pixels left out. The ignored pixels' logits are zeros (a NaN there, which the selection left out,
+    would reach the gradient through the log-softmax's backward)."""
     ok = (cols >= 0) & (alpha_px > 0.5)
     if not bool(ok.any()):
         return None
-    logits = s_px / alpha_px.unsqueeze(-1).clamp_min(1e-3)
+    alpha = torch.where(ok, alpha_px, 1.0).unsqueeze(-1).clamp_min(1e-3)
+    logits = torch.where(ok.unsqueeze(-1), s_px / alpha, 0.0)
     return F.nll_loss(softmax_last(logits, log=True), torch.where(ok, cols, -100), ignore_index=-100)
 
 
