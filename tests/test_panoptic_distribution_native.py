@@ -134,3 +134,36 @@ def test_bad_shapes_and_dtypes_are_refused():
         fused(dot, terms, coef, pt[:5], 0.1)
     with pytest.raises(ValueError, match="native kernel"):
         instance_distribution(dot.double(), terms, coef, pt.double(), 0.1, backend="native")
+
+
+@pytest.mark.parametrize("q", [1, 5, 16, 17, 33, 93])
+def test_native_affinity_matches_the_reference_on_every_instruction_set(q):
+    """instance_affinity (the distribution kernel's affinity before its softmax) against
+    sigmoid(dot) exp(-min(m2, cap) / 2) in float64 on m2 rounded to float32: within 2e-6 (values in
+    [0, 1]) on every instruction set, past the cap and at m2 = 0 included; InstanceQueries.affinity
+    dispatches to it and equals affinity_reference to float rounding."""
+    from psimap.render import _native
+    from psimap.render.native import instance_affinity
+
+    dot, terms, coef, _, _ = inputs(150, q, seed=q + 7)
+    m2 = (terms @ coef.T).float().double().clamp_max(MAX_MAHALANOBIS2)
+    ref = torch.sigmoid(dot.double()) * torch.exp(-0.5 * m2)
+    # surfel 1 at m2 = 0 from every query; query 0 past the cap on every other surfel
+    assert float(ref[1].min()) > 0.0 and float(ref[torch.arange(150) != 1, 0].max()) < 1e-30
+    try:
+        for isa in _native.available_pixel_kernels():
+            _native.use_pixel_kernels(isa)
+            got = instance_affinity(dot, terms, coef)
+            assert got.dtype == torch.float32 and got.shape == (150, q)
+            torch.testing.assert_close(got.double(), ref, rtol=0.0, atol=2e-6, msg=f"{isa}: affinity")
+    finally:
+        _native.use_pixel_kernels("")
+    g = torch.Generator().manual_seed(q)
+    queries = InstanceQueries(torch.randn(q, 16, generator=g), torch.randn(q, 3, generator=g),
+                              0.5 * torch.eye(3).expand(q, 3, 3), generator=g)
+    feat, pos = torch.randn(300, 16, generator=g), torch.randn(300, 3, generator=g)
+    a, b = queries.affinity(feat, pos), queries.affinity_reference(feat, pos).detach()
+    torch.testing.assert_close(a, b, rtol=0.0, atol=2e-6)
+    assert float(b.max()) > 0.1
+    with pytest.raises(ValueError, match="instance_affinity"):
+        instance_affinity(dot.double(), terms, coef)

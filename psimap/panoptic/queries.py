@@ -200,16 +200,38 @@ class InstanceQueries(nn.Module):
         upd = self.w_v(torch.softmax(qk, dim=-1) @ surfel_feat)                         # [Q, F]
         return self.feature + torch.tanh(self.gate) * upd
 
-    def affinity(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor,
-                 query_feat: torch.Tensor | None = None) -> torch.Tensor:
+    def affinity_reference(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor,
+                           query_feat: torch.Tensor | None = None) -> torch.Tensor:
         """A(q, g) = sigmoid(f_q . f_g) * exp(-m^2/2): [N, Q] in [0, 1]. m^2 is capped at
         MAX_MAHALANOBIS2: beyond, exp(-m^2/2) falls below float32's normal range, and exponentials
         and products that give subnormal floats take a slow path on x86 (the demo's first steps, 85
         queries: 7 ms an exp of [12.8k, 85], 0.8 ms capped). The capped affinity, < 2e-35, is nothing
-        next to a query within reach, as the uncapped one was."""
+        next to a query within reach, as the uncapped one was. The readable torch form of
+        `affinity`, differentiable."""
         fq = self.feature if query_feat is None else query_feat
         sim = torch.sigmoid(surfel_feat @ fq.T)
         return sim * torch.exp(-0.5 * self.mahalanobis2(surfel_pos).clamp_max(MAX_MAHALANOBIS2))
+
+    def affinity(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor,
+                 query_feat: torch.Tensor | None = None) -> torch.Tensor:
+        """A(q, g) [N, Q] without gradient (the scene-wide labels, adjustments and export read it):
+        the native kernel for float32 CPU features where it is built (the distances summed on its
+        lanes from `mahalanobis_terms`: 65k surfels x 93 queries ~130 ms in torch), else
+        `affinity_reference`."""
+        with torch.no_grad():
+            fq = (self.feature if query_feat is None else query_feat).detach()
+            feat = surfel_feat.detach()
+            native = feat.device.type == "cpu" and feat.dtype == torch.float32 and fq.dtype == torch.float32
+            if native:
+                from psimap.render.api import native_available
+
+                native = native_available()
+            if not native:
+                return self.affinity_reference(feat, surfel_pos, fq)
+            from psimap.render.native import instance_affinity
+
+            terms, coef = self.mahalanobis_terms(surfel_pos)
+            return instance_affinity(feat @ fq.T, terms, coef)
 
     def distribution(self, surfel_feat: torch.Tensor, surfel_pos: torch.Tensor,
                      query_feat: torch.Tensor | None = None, p_thing: torch.Tensor | None = None,

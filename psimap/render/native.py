@@ -323,6 +323,23 @@ def instance_distribution(dot: torch.Tensor, terms: torch.Tensor, coef: torch.Te
     return _FieldDistribution.apply(dot, terms, coef, p_thing, float(temperature))
 
 
+def instance_affinity(dot: torch.Tensor, terms: torch.Tensor, coef: torch.Tensor) -> torch.Tensor:
+    """sigmoid(dot) exp(-min(m2, 160) / 2): [V, Q] float32, m2 = terms @ coef.T in float64 summed on
+    the lanes (csrc/field_lanes.inl, the distribution kernel's affinity before its softmax); dot
+    [V, Q] float32, terms [V, K] and coef [Q, K] float64. No gradient (the scene-wide labels and
+    adjustments read it). On the calling thread."""
+    if dot.dtype != torch.float32 or terms.dtype != torch.float64 or coef.dtype != torch.float64 \
+            or dot.dim() != 2 or terms.shape[0] != dot.shape[0] or coef.shape[0] != dot.shape[1] \
+            or terms.shape[1] != coef.shape[1]:
+        raise ValueError("instance_affinity: dot [V, Q] float32, terms [V, K] and coef [Q, K] float64")
+    v, q = dot.shape
+    k = terms.shape[1]
+    out = _empty((v, q))
+    _native.field_affinity(np.ascontiguousarray(dot.detach().numpy()), np.ascontiguousarray(terms.detach().numpy()),
+                           np.ascontiguousarray(coef.detach().numpy().T), v, q, k, out)
+    return torch.from_numpy(out)
+
+
 def match_sums(x: torch.Tensor, codes: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
     """The Hungarian matching's per-mask sums [5, M, Q] float64 over x [P, Q] float32 (a view's
     rendered query probabilities, pixel-major) clamped to [lo, hi]: x, log x and log(1 - x) on each

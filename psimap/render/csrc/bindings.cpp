@@ -233,6 +233,21 @@ NB_MODULE(_native, m) {
         "Panoptic field distribution softmax_q(sigmoid(dot) exp(-min(m2, 160) / 2) / T) * p_thing into "
         "out [V, Q] (softmax into soft), m2 = terms [V, K] x coef_t [K, Q] in float64; p_thing empty = 1.");
     m.def(
+        "field_affinity",
+        [](Array<const float> dot, Array<const double> terms, Array<const double> coef_t, int64_t V, int64_t Q,
+           int64_t K, Array<float> out) {
+            checked(dot, static_cast<size_t>(V) * static_cast<size_t>(Q), "dot");
+            checked(terms, static_cast<size_t>(V) * static_cast<size_t>(K), "terms");
+            checked(coef_t, static_cast<size_t>(K) * static_cast<size_t>(Q), "coef_t");
+            checked(out, static_cast<size_t>(V) * static_cast<size_t>(Q), "out");
+            // on the calling thread, as the field's distribution (see field_distribution_forward)
+            nb::gil_scoped_release release;
+            pixel_kernels().field_affinity(dot.data(), terms.data(), coef_t.data(), K, 0, V, Q, out.data());
+        },
+        nb::arg("dot"), nb::arg("terms"), nb::arg("coef_t"), nb::arg("V"), nb::arg("Q"), nb::arg("K"), nb::arg("out"),
+        "Panoptic field affinity sigmoid(dot) exp(-min(m2, 160) / 2) into out [V, Q], m2 = terms [V, K] x "
+        "coef_t [K, Q] in float64.");
+    m.def(
         "field_distribution_backward",
         [](Array<const float> dot, Array<const double> terms, Array<const double> coef_t, Array<const float> p_thing,
            Array<const float> soft, Array<const float> v_out, int64_t V, int64_t Q, int64_t K, float temperature,

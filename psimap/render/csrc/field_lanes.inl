@@ -221,6 +221,25 @@ void field_forward_rows(const float* dot, const double* terms, const double* coe
     }
 }
 
+// Rows [v0, v1) of the affinity alone, out [V, Q] = sigmoid(dot) exp(-min(m2, kMaxM2) / 2) (the
+// same lanes as field_forward_rows before its softmax): the adjustments' and the labels' scene-wide
+// affinity (psimap.panoptic.queries.InstanceQueries.affinity), where torch built the [V, Q] float64
+// distances by a product with 10 columns, cast them and ran four more passes (~130 ms for 65k
+// surfels x 93 queries).
+void field_affinity_rows(const float* dot, const double* terms, const double* coef_t, int64_t K, int64_t v0,
+                         int64_t v1, int64_t Q, float* out) {
+    for (int64_t v = v0; v < v1; ++v) {
+        const float* d_row = dot + v * Q;
+        const double* t_row = terms + v * K;
+        float* o_row = out + v * Q;
+        for (int64_t q0 = 0; q0 < Q; q0 += kLanes) {
+            vf s, e;
+            affinity_terms(load_f(d_row, q0, Q), m2_lanes(t_row, coef_t, K, q0, Q), &s, &e);
+            store_f(o_row, q0, Q, s * e);
+        }
+    }
+}
+
 // The backward of field_distribution_forward for v_out [V, Q]: v_dot [V, Q] float32, v_coef_t [K, Q]
 // float64 added to (the terms are constants; m2's gradient is 0 where m2 > kMaxM2, the cap's),
 // v_p_thing [V] (written when p_thing is given).

@@ -544,7 +544,7 @@ void exp_values(const float* x, float* out, int64_t n) {
 PixelKernels kernels() {
     return PixelKernels{PSIMAP_ISA_NAME,   kLanes,           &forward_tile, &backward_tile, &exp_values,
                         &field_forward_rows, &field_backward_rows, &match_sums_rows,
-                        &blend_rows_forward};
+                        &blend_rows_forward, &field_affinity_rows};
 }
 
 }  // namespace PSIMAP_ISA_NS

@@ -173,6 +173,9 @@ struct PixelKernels {
     // the frozen blend's CSR product on rows [r0, r1) (blend_lanes.inl): out = A f
     void (*blend_forward)(const int64_t* indptr, const int32_t* indices, const float* data, const float* f,
                           int64_t r0, int64_t r1, int64_t C, float* out);
+    // the panoptic field's affinity alone on rows [v0, v1) (field_lanes.inl)
+    void (*field_affinity)(const float* dot, const double* terms, const double* coef_t, int64_t K, int64_t v0,
+                           int64_t v1, int64_t Q, float* out);
 };
 
 // The kernels in use: the widest instruction set this CPU runs, unless select_kernels chose one.
