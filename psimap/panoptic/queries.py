@@ -41,6 +41,15 @@ def softmax_last(x: torch.Tensor, log: bool = False) -> torch.Tensor:
     return fn(x, -1)
 
 
+def _native_field(t: torch.Tensor) -> bool:
+    """Whether the native field kernels can take t: float32 on the CPU, the module built."""
+    if t.device.type != "cpu" or t.dtype != torch.float32:
+        return False
+    from psimap.render.api import native_available
+
+    return native_available()
+
+
 def instance_distribution_reference(dot: torch.Tensor, m2: torch.Tensor, p_thing: torch.Tensor | None,
                                     temperature: float) -> torch.Tensor:
     """softmax_q(A / temperature) * p_thing [V, Q], A = sigmoid(dot) exp(-min(m2, MAX_MAHALANOBIS2) / 2)
@@ -61,11 +70,7 @@ def instance_distribution(dot: torch.Tensor, terms: torch.Tensor, coef: torch.Te
     on its lanes: the [V, Q] float64 distances and their gradient are never built (at 93 queries
     and a room view's 17k surfels, the two float64 products and those 12 MB tensors took ~10 ms of a
     step). In torch the chain is ~9 passes over [V, Q] forward and ~13 backward."""
-    native = backend in ("auto", "native") and dot.device.type == "cpu" and dot.dtype == torch.float32
-    if native:
-        from psimap.render.api import native_available
-
-        native = native_available()
+    native = backend in ("auto", "native") and _native_field(dot)
     if backend == "native" and not native:
         raise ValueError("instance_distribution: the native kernel needs float32 CPU tensors and the built module")
     if not native:
@@ -221,12 +226,7 @@ class InstanceQueries(nn.Module):
         with torch.no_grad():
             fq = (self.feature if query_feat is None else query_feat).detach()
             feat = surfel_feat.detach()
-            native = feat.device.type == "cpu" and feat.dtype == torch.float32 and fq.dtype == torch.float32
-            if native:
-                from psimap.render.api import native_available
-
-                native = native_available()
-            if not native:
+            if not (_native_field(feat) and fq.dtype == torch.float32):
                 return self.affinity_reference(feat, surfel_pos, fq)
             from psimap.render.native import instance_affinity
 

@@ -277,6 +277,14 @@ def rasterize_native(proj: Projected, opacities: torch.Tensor, colors: torch.Ten
                         distortion=dist, features=feat, stats=stats)
 
 
+def _check_field_inputs(name: str, dot: torch.Tensor, terms: torch.Tensor, coef: torch.Tensor) -> None:
+    """The field kernels' shared inputs: dot [V, Q] float32, terms [V, K] and coef [Q, K] float64."""
+    if dot.dtype != torch.float32 or terms.dtype != torch.float64 or coef.dtype != torch.float64 \
+            or dot.dim() != 2 or terms.dim() != 2 or coef.dim() != 2 or terms.shape[0] != dot.shape[0] \
+            or coef.shape[0] != dot.shape[1] or terms.shape[1] != coef.shape[1]:
+        raise ValueError(f"{name}: dot [V, Q] float32, terms [V, K] and coef [Q, K] float64")
+
+
 class _FieldDistribution(torch.autograd.Function):
     """The panoptic field's per-surfel instance distribution, fused (csrc/field_lanes.inl);
     psimap.panoptic.queries.instance_distribution_reference is the torch form it is held to."""
@@ -315,9 +323,7 @@ def instance_distribution(dot: torch.Tensor, terms: torch.Tensor, coef: torch.Te
     lanes); differentiable in dot [V, Q] float32, coef [Q, K] float64 (the queries' coefficients)
     and p_thing [V] float32 (None: 1); terms [V, K] float64 (the surfels' monomials) are constants.
     CPU tensors, on the calling thread (csrc/bindings.cpp says why)."""
-    if dot.dtype != torch.float32 or terms.dtype != torch.float64 or coef.dtype != torch.float64 \
-            or terms.shape[0] != dot.shape[0] or coef.shape[0] != dot.shape[1] or terms.shape[1] != coef.shape[1]:
-        raise ValueError("instance_distribution: dot [V, Q] float32, terms [V, K] and coef [Q, K] float64")
+    _check_field_inputs("instance_distribution", dot, terms, coef)
     if p_thing is not None and (p_thing.dtype != torch.float32 or p_thing.shape != dot.shape[:1]):
         raise ValueError("instance_distribution: p_thing [V] float32")
     return _FieldDistribution.apply(dot, terms, coef, p_thing, float(temperature))
@@ -328,10 +334,7 @@ def instance_affinity(dot: torch.Tensor, terms: torch.Tensor, coef: torch.Tensor
     the lanes (csrc/field_lanes.inl, the distribution kernel's affinity before its softmax); dot
     [V, Q] float32, terms [V, K] and coef [Q, K] float64. No gradient (the scene-wide labels and
     adjustments read it). On the calling thread."""
-    if dot.dtype != torch.float32 or terms.dtype != torch.float64 or coef.dtype != torch.float64 \
-            or dot.dim() != 2 or terms.shape[0] != dot.shape[0] or coef.shape[0] != dot.shape[1] \
-            or terms.shape[1] != coef.shape[1]:
-        raise ValueError("instance_affinity: dot [V, Q] float32, terms [V, K] and coef [Q, K] float64")
+    _check_field_inputs("instance_affinity", dot, terms, coef)
     v, q = dot.shape
     k = terms.shape[1]
     out = _empty((v, q))
