@@ -321,7 +321,7 @@ def trained_table(tmp: Path):
         total = time.perf_counter() - t
         c = r["check"]
         rows.append([completion, len(r["objects"]), len(r["skipped"]), c["passed"], -c["min_contact_dist"] * 1000,
-                     len(c["nudges"]), max(c["nudges"].values(), default=0.0) * 1000, c["max_drift"] * 1000,
+                     len(c["nudges"]), max((float(np.linalg.norm(v)) for v in c["nudges"].values()), default=0.0) * 1000, c["max_drift"] * 1000,
                      len(c["unsupported"]), len(c.get("fell", {})), total])
         skipped = "; ".join(f"{s['name']}: {s['reason']}" for s in r["skipped"]) or "none"
         fails = "; ".join(c["failures"]) or "none"

@@ -18,7 +18,7 @@ this module stays standard-library only, so `psimap --help` can read the format 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 from psimap import PsimapError
@@ -31,25 +31,25 @@ class ExportScene:
     objects: SceneObject (exporters.objects) with Role.DYNAMIC or Role.STATIC, world frame, metres,
     in export order. background: what the static world looks like (floor, walls, unlabelled
     surfaces) as a visual SceneObject, or None. floor_z: height of the floor plane that carries
-    contacts. nudges: {object name: dz} metres along +z from the MuJoCo settle check (up out of a
-    penetration, down onto a support); writers place object `o` at its reconstructed pose moved by
-    `offset(o)`. environment: the static world's colliders (exporters.environment.StaticEnvironment:
+    contacts. nudges: {object name: [dx, dy, dz]} metres from the MuJoCo settle check (out of a
+    penetration along its contact normal, down onto a support); writers place object `o` at its
+    reconstructed pose moved by `offset(o)`. environment: the static world's colliders (exporters.environment.StaticEnvironment:
     supports, walls, ceilings, clutter; every writer that simulates emits all of them), or None.
     """
 
     objects: tuple
     background: object | None
     floor_z: float
-    nudges: Mapping[str, float] = field(default_factory=dict)
+    nudges: Mapping[str, Sequence[float]] = field(default_factory=dict)
     environment: object | None = None
 
     def offset(self, obj):
         """[3] translation (metres) of `obj` from its reconstructed place: its settle nudge."""
         import numpy as np
 
-        return np.array([0, 0, self.nudges.get(obj.name, 0.0)])
+        return np.array(self.nudges.get(obj.name, (0.0, 0.0, 0.0)), dtype=np.float64).reshape(3)
 
-    def nudged(self, nudges: Mapping[str, float]) -> ExportScene:
+    def nudged(self, nudges: Mapping[str, Sequence[float]]) -> ExportScene:
         """This scene with the settle check's nudges applied (one place for every writer)."""
         return replace(self, nudges=dict(nudges))
 

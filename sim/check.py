@@ -2,11 +2,11 @@
 
 1. Load with `mujoco.MjModel.from_xml_path`: a failed load is an error (PsimapError), never a warning.
 2. Initial penetration: after `mj_forward`, the deepest contact (min `contact.dist`) must be
-   >= -max_penetration. With `resolve=True`, penetrating free bodies are nudged up along the support
-   normal (+z, gravity is -z) by their depth, then bodies hovering up to `max_gap` above their
-   support are lowered onto it (the mirror case: a reconstruction leaves an object's underside a
-   voxel above the table, and it drops in the settle); the file is rewritten atomically and the
-   nudges (signed, metres along +z) are reported.
+   >= -max_penetration. With `resolve=True`, penetrating free bodies are moved out along the
+   contact normal by their depth (up off a support, sideways off a wall; gravity is -z), then
+   bodies hovering up to `max_gap` above their support are lowered onto it (the mirror case: a
+   reconstruction leaves an object's underside a voxel above the table, and it drops in the
+   settle); the file is rewritten atomically and the nudges ([dx, dy, dz] metres) are reported.
 3. Settle: simulate `duration` seconds; bodies resting at t = 0 (in contact) must move less than
    `max_drift`; bodies with no support within `support_gap` at t = 0 must not fall (a floating
    object is a broken scene, not a settle); no NaN; no explosion (speed or height beyond reason).
@@ -62,12 +62,12 @@ def _penetrations(model, data) -> tuple[float, dict[int, float], set[int]]:
 
 def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rounds: int = 20,
                         margin: float = 2e-4, max_gap: float = 0.02) -> dict[str, float]:
-    """Nudge penetrating free bodies up (+z) until min contact.dist >= -max_penetration, then lower
-    free bodies that hover more than max_penetration and at most `max_gap` above their support
-    onto it (`lower_onto_supports`).
+    """Move penetrating free bodies out along the contact normal until min contact.dist >=
+    -max_penetration (`_push_out`), then lower free bodies that hover more than max_penetration and
+    at most `max_gap` above their support onto it (`lower_onto_supports`).
 
-    Rewrites `path` atomically (body `pos` attributes). Returns {body name: total signed nudge in
-    metres along +z}.
+    Rewrites `path` atomically (body `pos` attributes). Returns {body name: [dx, dy, dz], its total
+    nudge in metres}.
     """
     import mujoco
 
@@ -76,28 +76,33 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
     path = Path(path)
     tree = ET.parse(path)
     bodies = {b.get("name"): b for b in tree.getroot().iter("body") if b.get("name")}
-    nudges: dict[str, float] = {}
-    _lift_out(tree, bodies, path, nudges, max_penetration, margin, max_rounds)
+    nudges: dict[str, np.ndarray] = {}
+    _push_out(tree, bodies, path, nudges, max_penetration, margin, max_rounds)
     if max_gap > 0:
         lower_onto_supports(tree, bodies, path, nudges, max_gap, min_gap=max_penetration, margin=margin,
                             max_rounds=max_rounds)
         # rays find the first contact from the body's own points; a support's corner poking up into
-        # a face (an unlabelled ramp's hull under a box) is met earlier: lift out of that again
-        _lift_out(tree, bodies, path, nudges, max_penetration, margin, max_rounds)
-    nudges = {k: v for k, v in nudges.items() if abs(v) > 1e-9}
+        # a face (an unlabelled ramp's hull under a box) is met earlier: push out of that again
+        _push_out(tree, bodies, path, nudges, max_penetration, margin, max_rounds)
+    nudges = {k: v for k, v in nudges.items() if float(np.abs(v).max()) > 1e-9}
     if nudges:
         with atomic_path(path) as tmp:
             tree.write(tmp, encoding="unicode")
             with open(tmp, "a") as f:
                 f.write("\n")
-    return {k: float(v) for k, v in sorted(nudges.items())}
+    return {k: [float(x) for x in v] for k, v in sorted(nudges.items())}
 
 
-def _lift_out(tree, bodies: dict, path: Path, nudges: dict[str, float], max_penetration: float, margin: float,
-              max_rounds: int) -> None:
-    """Lift penetrating free bodies (+z) until min contact.dist >= -max_penetration: per penetrating
-    contact the body on top (the higher centre of mass) leaves the one under it, never the support
-    (lifting a table out of the cup on it drops the table). Edits `tree`, adds to `nudges`."""
+def _push_out(tree, bodies: dict, path: Path, nudges: dict[str, np.ndarray], max_penetration: float,
+              margin: float, max_rounds: int) -> None:
+    """Move penetrating free bodies out along the contact normal until min contact.dist >=
+    -max_penetration: per round each such body leaves its deepest contact by its depth + margin.
+    Of two free bodies in contact the one the separation moves up leaves (the cup leaves the table
+    under it, never the table the cup: lifting the support drops what it carries); side by side
+    (a normal within 30 degrees of horizontal) the lighter one. A body sunk into a wall leaves it
+    sideways (lifting it, as this once did, never clears a vertical face: a real capture's object
+    touching a wall went up 20 cm in 2.8 mm steps and the penetration stayed). Edits `tree`, adds
+    to `nudges`."""
     import mujoco
 
     for _ in range(max_rounds):
@@ -108,31 +113,39 @@ def _lift_out(tree, bodies: dict, path: Path, nudges: dict[str, float], max_pene
         if min_dist >= -max_penetration:
             return
         free = set(_free_bodies(model))
-        movable: dict[int, float] = {}
+        moves: dict[int, tuple[float, np.ndarray]] = {}
         for i in range(data.ncon):
             c = data.contact[i]
             depth = -float(c.dist)
             if depth <= max_penetration:
                 continue
+            # frame[:3] is the normal from geom1 to geom2: geom2's body leaves along it
+            n = np.asarray(c.frame[:3], np.float64)
             b1, b2 = int(model.geom_bodyid[c.geom1]), int(model.geom_bodyid[c.geom2])
-            cands = [b for b in (b1, b2) if b in free]
+            cands = [(b, d) for b, d in ((b1, -n), (b2, n)) if b in free]
             if not cands:
                 continue
-            top = max(cands, key=lambda b: float(data.xipos[b][2])) if len(cands) == 2 else cands[0]
-            movable[top] = max(movable.get(top, 0.0), depth)
-        if not movable:
+            if len(cands) == 2:
+                if abs(n[2]) >= 0.5:
+                    b, d = max(cands, key=lambda bd: bd[1][2])
+                else:
+                    b, d = min(cands, key=lambda bd: float(model.body_subtreemass[bd[0]]))
+            else:
+                b, d = cands[0]
+            if depth > moves.get(b, (0.0, None))[0]:
+                moves[b] = (depth, d)
+        if not moves:
             return
-        for b, depth in movable.items():
-            _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), depth + margin, nudges)
+        for b, (depth, d) in moves.items():
+            _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), (depth + margin) * d, nudges)
 
 
-def _shift_body(bodies: dict, name: str, dz: float, nudges: dict[str, float]) -> None:
-    """Move the body element `name` by dz along +z and add dz to its nudge."""
+def _shift_body(bodies: dict, name: str, delta: np.ndarray, nudges: dict[str, np.ndarray]) -> None:
+    """Move the body element `name` by delta [3] (m) and add it to its nudge."""
     el = bodies[name]
-    pos = np.array([float(x) for x in el.get("pos", "0 0 0").split()])
-    pos[2] += dz
+    pos = np.array([float(x) for x in el.get("pos", "0 0 0").split()]) + delta
     el.set("pos", " ".join(f"{v:.9g}" for v in pos))
-    nudges[name] = nudges.get(name, 0.0) + dz
+    nudges[name] = nudges.get(name, np.zeros(3)) + delta
 
 
 @contextmanager
@@ -215,7 +228,7 @@ def _support_gaps(model, data, free: set[int], max_gap: float) -> dict[int, list
     return gaps
 
 
-def lower_onto_supports(tree, bodies: dict, path: Path, nudges: dict[str, float], max_gap: float, *,
+def lower_onto_supports(tree, bodies: dict, path: Path, nudges: dict[str, np.ndarray], max_gap: float, *,
                         min_gap: float = 1e-3, margin: float = 2e-4, max_rounds: int = 5) -> None:
     """Lower free bodies hovering min_gap..max_gap above their support onto it (to `margin` above),
     editing `tree` and accumulating into `nudges`. A body resting on one that comes down comes down
@@ -239,7 +252,7 @@ def lower_onto_supports(tree, bodies: dict, path: Path, nudges: dict[str, float]
         if not drop:
             return
         for b, d in drop.items():
-            _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), -d, nudges)
+            _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), np.array([0.0, 0.0, -d]), nudges)
 
 
 def _model_from_tree(tree, path: Path):
@@ -262,8 +275,8 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     """Load, penetration, settle and stability check of an MJCF scene. Returns a plain dict report:
 
     loaded, bodies (free), static_bodies (names of world-welded bodies with colliders), min_contact_dist
-    (m), nudges {body: signed m along +z: up out of a penetration, down onto a support up to max_gap
-    below}, drift {body: m} for resting bodies,
+    (m), nudges {body: [dx, dy, dz] m: out of a penetration along its contact normal, down onto a
+    support up to max_gap below}, drift {body: m} for resting bodies,
     max_drift, unsupported (bodies not in contact at t=0), fell {body: m dropped} (unsupported
     bodies that fell more than max_drift: a failure), unstable (names of the bodies that moved more
     than max_drift or fell), nan, exploded, sim_seconds_per_wall_second,

@@ -48,26 +48,26 @@ def test_nudges_found_once_and_every_format_places_objects_alike(nudged_export):
     objs, report, out = nudged_export
     nudges = report["check"]["nudges"]
     # lifted out of the table (depth + the check's 0.2 mm margin), lowered onto the floor
-    assert nudges["box_2"] == pytest.approx(SUNK + 2e-4, abs=3e-4)
-    assert nudges["can_3"] == pytest.approx(-HOVER + 2e-4, abs=1e-3)
+    assert nudges["box_2"] == pytest.approx([0, 0, SUNK + 2e-4], abs=3e-4)
+    assert nudges["can_3"] == pytest.approx([0, 0, -HOVER + 2e-4], abs=1e-3)
     assert "table_1" not in nudges                      # static: a support, never moved
     com = {o.name: np.asarray(o.physics.com, np.float64) for o in objs}
     # MJCF: the body frame (at the centre of mass) moved by the nudge
     bodies = {b.get("name"): b for b in ET.parse(out / "scene.xml").getroot().iter("body")}
-    for name, dz in nudges.items():
+    for name, d in nudges.items():
         pos = np.array([float(x) for x in bodies[name].get("pos").split()])
-        np.testing.assert_allclose(pos, com[name] + [0, 0, dz], atol=1e-8)
+        np.testing.assert_allclose(pos, com[name] + d, atol=1e-8)
     # USD: the Xform's world translation likewise
     stage = Usd.Stage.Open(str(out / "scene.usda"))
     cache = UsdGeom.XformCache()
     for name in com:
         t = np.array(cache.GetLocalToWorldTransform(stage.GetPrimAtPath(f"/World/{name}")).ExtractTranslation())
-        np.testing.assert_allclose(t, com[name] + [0, 0, nudges.get(name, 0.0)], atol=1e-6)
+        np.testing.assert_allclose(t, com[name] + nudges.get(name, [0.0, 0.0, 0.0]), atol=1e-6)
     # GLB (Y-up): the visual mesh moved by the same amount, so its lowest point is the object's plus dz
     glb = trimesh.load(out / "scene.glb", force="scene")
     for o in objs:
         lo = glb.geometry[o.name].copy().apply_transform(glb.graph[o.name][0]).bounds[0]
-        assert lo[1] == pytest.approx(o.mesh.bounds[0, 2] + nudges.get(o.name, 0.0), abs=1e-6)
+        assert lo[1] == pytest.approx(o.mesh.bounds[0, 2] + nudges.get(o.name, [0.0, 0.0, 0.0])[2], abs=1e-6)
     # meshes/ and report.json describe the objects as reconstructed (no nudge)
     rep = json.loads((out / "report.json").read_text())
     box = trimesh.load(out / "meshes" / "box_2.obj", force="mesh")
@@ -100,7 +100,7 @@ def test_a_new_format_is_one_module(tmp_path, monkeypatch):
         "    path = out_dir / 'scene.sdf'\n"
         "    path.write_text(json.dumps({'floor_z': scene.floor_z, 'nudges': dict(scene.nudges),\n"
         "        'roles': {o.name: o.role.value for o in scene.objects},\n"
-        "        'lift': {o.name: float(scene.offset(o)[2]) for o in scene.objects}}))\n"
+        "        'offset': {o.name: [float(x) for x in scene.offset(o)] for o in scene.objects}}))\n"
         "    return path\n"
         "def validate(path):\n"
         "    return {'errors': [] if path.name == 'scene.sdf' else ['wrong file']}\n"
@@ -112,8 +112,8 @@ def test_a_new_format_is_one_module(tmp_path, monkeypatch):
     r = export_scene(_scene(), tmp_path / "out", "sdf")
     written = json.loads((tmp_path / "out" / "scene.sdf").read_text())
     assert written["nudges"] == r["check"]["nudges"] and set(written["nudges"]) == {"box_2", "can_3"}
-    assert written["lift"]["box_2"] == pytest.approx(written["nudges"]["box_2"])
-    assert written["lift"]["table_1"] == 0
+    assert written["offset"]["box_2"] == pytest.approx(written["nudges"]["box_2"])
+    assert written["offset"]["table_1"] == [0, 0, 0]
     assert written["roles"] == {"table_1": "static", "box_2": "dynamic", "can_3": "dynamic"}
     assert written["floor_z"] == pytest.approx(r["floor_z"])
     assert r["sdf_validation"] == {"errors": []} and r["format"] == ["sdf"]

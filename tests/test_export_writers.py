@@ -53,14 +53,15 @@ def _entries(report):
 
 
 def _nudge(report, name):
-    return float(report["check"]["nudges"].get(name, 0.0))
+    """[3] the settle check's nudge of `name` (m; zero when it was not moved)."""
+    return np.asarray(report["check"]["nudges"].get(name, (0.0, 0.0, 0.0)), np.float64)
 
 
 def test_the_scene_exercises_what_the_writers_must_get_right(exported):
     _, report, objs = exported
     e = _entries(report)
     assert sorted(e) == ["book_3", "can_2", "cracker_box_1", "toy_4"]
-    assert report["check"]["nudges"]["can_2"] == pytest.approx(0.0104, abs=1.5e-3)   # lifted out of the box
+    assert report["check"]["nudges"]["can_2"] == pytest.approx([0, 0, 0.0104], abs=1.5e-3)   # lifted out of the box
     assert set(report["check"]["nudges"]) == {"can_2"}
     assert e["toy_4"]["collision"]["kind"] == "decomposition" and e["toy_4"]["collision"]["hull_count"] >= 2
     assert e["book_3"]["collision"]["kind"] == "box"
@@ -114,7 +115,7 @@ def test_mjcf_bodies_mass_inertia_and_placement(exported, mj):
         b = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
         ph = objs[name].physics
         # the body frame is the COM, lifted by the check's nudge
-        np.testing.assert_allclose(d.xpos[b], np.asarray(e["physics"]["com"]) + [0, 0, _nudge(report, name)],
+        np.testing.assert_allclose(d.xpos[b], np.asarray(e["physics"]["com"]) + _nudge(report, name),
                                    atol=1e-6, err_msg=name)
         np.testing.assert_allclose(d.xipos[b], d.xpos[b], atol=1e-9, err_msg=name)
         assert m.body_mass[b] == pytest.approx(e["physics"]["mass_kg"], rel=1e-6), name
@@ -139,7 +140,7 @@ def test_mjcf_colliders_friction_and_parts(exported, mj):
             assert m.geom_friction[g][0] == pytest.approx(e["physics"]["friction"]), name
             assert m.geom_contype[g] and m.geom_conaffinity[g], name
         # every collider part sits on its world-frame copy in collision/ (lifted by the nudge)
-        lift = np.array([0, 0, _nudge(report, name)])
+        lift = _nudge(report, name)
         for k, g in enumerate(sorted(geoms)):
             part = trimesh.load(out / e["files"]["collision"][k], process=False)
             centre = part.bounds.mean(axis=0) + lift
@@ -168,7 +169,7 @@ def test_mjcf_visual_meshes_land_on_the_object(exported, mj):
         mesh_id = m.geom_dataid[g]
         start, count = m.mesh_vertadr[mesh_id], m.mesh_vertnum[mesh_id]
         verts = m.mesh_vert[start:start + count] @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g]
-        lo, hi = np.asarray(e["bounds"]) + [0, 0, _nudge(report, name)]
+        lo, hi = np.asarray(e["bounds"]) + _nudge(report, name)
         np.testing.assert_allclose(verts.min(0), lo, atol=1e-5, err_msg=name)
         np.testing.assert_allclose(verts.max(0), hi, atol=1e-5, err_msg=name)
         assert m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0
@@ -209,10 +210,10 @@ def test_usd_prims_sit_where_the_report_says(exported, stage):
         prim = stage.GetPrimAtPath(f"/World/{name}")
         M = np.asarray(cache.GetLocalToWorldTransform(prim), np.float64)
         np.testing.assert_allclose(M[:3, :3], np.eye(3), atol=1e-12, err_msg=name)
-        np.testing.assert_allclose(M[3, :3], np.asarray(e["physics"]["com"]) + [0, 0, _nudge(report, name)],
+        np.testing.assert_allclose(M[3, :3], np.asarray(e["physics"]["com"]) + _nudge(report, name),
                                    atol=1e-6, err_msg=name)
         pts = _world_points(stage.GetPrimAtPath(f"/World/{name}/visual"), cache)
-        lo, hi = np.asarray(e["bounds"]) + [0, 0, _nudge(report, name)]
+        lo, hi = np.asarray(e["bounds"]) + _nudge(report, name)
         np.testing.assert_allclose(pts.min(0), lo, atol=1e-5, err_msg=name)
         np.testing.assert_allclose(pts.max(0), hi, atol=1e-5, err_msg=name)
 
@@ -227,7 +228,7 @@ def test_usd_colliders_every_part_in_place(exported, stage):
         parts = [c for c in stage.GetPrimAtPath(f"/World/{name}").GetChildren()
                  if c.GetName().startswith("collision_")]
         assert len(parts) == max(1, e["collision"]["hull_count"]), name
-        lift = np.array([0, 0, _nudge(report, name)])
+        lift = _nudge(report, name)
         for k, prim in enumerate(sorted(parts, key=lambda p: p.GetName())):
             assert prim.HasAPI(UsdPhysics.CollisionAPI), name
             ref = trimesh.load(out / e["files"]["collision"][k], process=False)
@@ -288,7 +289,7 @@ def test_glb_has_every_object_y_up_where_the_report_says(exported):
         mesh = scene.geometry[geom]
         assert len(mesh.faces) == e["faces_after"], name
         pts = trimesh.transform_points(mesh.vertices, T)
-        lo, hi = np.asarray(e["bounds"]) + [0, 0, _nudge(report, name)]
+        lo, hi = np.asarray(e["bounds"]) + _nudge(report, name)
         # glTF is Y-up: world (x, y, z) -> (x, z, -y)
         np.testing.assert_allclose(pts.min(0), [lo[0], lo[2], -hi[1]], atol=1e-5, err_msg=name)
         np.testing.assert_allclose(pts.max(0), [hi[0], hi[2], -lo[1]], atol=1e-5, err_msg=name)

@@ -34,11 +34,36 @@ def test_penetration_is_nudged_and_reported(tmp_path):
     p = _write(tmp_path, BOX.format(z=0.04, extra=""))      # 1 cm into the floor
     r = check_mjcf(p)
     assert r["passed"], r["failures"]
-    assert r["nudges"]["box"] == pytest.approx(0.01, abs=1.5e-3)
+    assert r["nudges"]["box"] == pytest.approx([0, 0, 0.01], abs=1.5e-3)
     assert r["min_contact_dist"] >= -1e-3
     assert 'pos="0 0 0.05' in p.read_text()                # the file itself was fixed
     r2 = check_mjcf(_write(tmp_path, BOX.format(z=0.04, extra=""), "b.xml"), resolve=False)
     assert not r2["passed"] and "penetration" in r2["failures"][0]
+
+
+def test_penetration_into_a_wall_is_resolved_sideways(tmp_path):
+    """A box resting on the floor sunk 4 mm into a static wall (a reconstruction that fused an
+    object touching the wall a few mm deep, as on a 7-Scenes capture): it leaves the wall along the
+    contact normal, stays on the floor and passes. Lifting it (the old rule) never clears a vertical
+    face: the box went up in 4 mm steps, the penetration stayed and the check failed."""
+    wall = '<body name="wall" pos="0.246 0 0.5"><geom type="box" size="0.15 0.5 0.5"/></body>\n'
+    p = _write(tmp_path, BOX.format(z=0.05, extra=wall))
+    r = check_mjcf(p)
+    assert r["passed"], r["failures"]
+    dx, dy, dz = r["nudges"]["box"]
+    assert dx == pytest.approx(-0.004 - 2e-4, abs=3e-4) and abs(dy) < 1e-4 and abs(dz) < 1e-4
+    assert r["min_contact_dist"] >= -1e-3 and r["drift"]["box"] < 1e-3
+    assert r["static_bodies"] == ["wall"]
+
+
+def test_free_bodies_side_by_side_the_lighter_one_leaves(tmp_path):
+    # two boxes on the floor, 4 mm into each other sideways: the 0.2 kg one leaves the 1 kg one
+    light = ('<body name="light" pos="0.146 0 0.05"><freejoint/>'
+             '<geom type="box" size="0.05 0.05 0.05" mass="0.2"/></body>\n')
+    r = check_mjcf(_write(tmp_path, BOX.format(z=0.05, extra=light)))
+    assert r["passed"], r["failures"]
+    assert list(r["nudges"]) == ["light"]
+    assert r["nudges"]["light"] == pytest.approx([0.004 + 2e-4, 0, 0], abs=3e-4)
 
 
 def test_floating_object_falls_and_fails(tmp_path):
@@ -50,7 +75,7 @@ def test_floating_object_falls_and_fails(tmp_path):
     # 3 mm above it: lowered onto the floor (reported as a negative nudge) and passes
     r2 = check_mjcf(_write(tmp_path, BOX.format(z=0.053, extra=""), "low.xml"))
     assert r2["passed"] and r2["unsupported"] == [] and r2["fell"] == {}
-    assert r2["nudges"]["box"] == pytest.approx(-0.003, abs=3e-4)
+    assert r2["nudges"]["box"] == pytest.approx([0, 0, -0.003], abs=3e-4)
 
 
 def test_hovering_stack_is_lowered_bottom_first(tmp_path):
@@ -64,8 +89,8 @@ def test_hovering_stack_is_lowered_bottom_first(tmp_path):
     p = _write(tmp_path, text)
     r = check_mjcf(p)
     assert r["passed"], r["failures"]
-    assert r["nudges"]["box"] == pytest.approx(-0.015, abs=5e-4)
-    assert r["nudges"]["top"] == pytest.approx(-0.023, abs=5e-4)     # its own gap + the box's
+    assert r["nudges"]["box"] == pytest.approx([0, 0, -0.015], abs=5e-4)
+    assert r["nudges"]["top"] == pytest.approx([0, 0, -0.023], abs=5e-4)     # its own gap + the box's
     assert r["max_drift"] < 1e-3 and r["unsupported"] == []
     # without resolving, the same scene drops more than a centimetre: the check would fail
     r2 = check_mjcf(_write(tmp_path, text, "raw.xml"), resolve=False)
@@ -121,7 +146,7 @@ def test_static_body_is_support_not_mover(tmp_path):
     r = check_mjcf(p)
     assert r["passed"], r["failures"]
     assert r["static_bodies"] == ["table"] and r["bodies"] == 1
-    assert list(r["nudges"]) == ["box"] and r["nudges"]["box"] == pytest.approx(0.003, abs=1e-3)
+    assert list(r["nudges"]) == ["box"] and r["nudges"]["box"] == pytest.approx([0, 0, 0.003], abs=1e-3)
     assert list(r["drift"]) == ["box"] and r["drift"]["box"] < 1e-3 and r["unsupported"] == []
     assert 'name="table" pos="0.5 0 0.2"' in p.read_text()
 
@@ -133,7 +158,7 @@ def test_multi_part_body_hovering_is_found_and_lowered(tmp_path):
                     for k in range(6))
     text = BOX.replace('<geom type="box" size="0.1 0.1 0.05" mass="1"/>', slabs).format(z=0.09 + 0.006, extra="")
     r = check_mjcf(_write(tmp_path, text))
-    assert r["nudges"]["box"] == pytest.approx(-0.006, abs=3e-4)
+    assert r["nudges"]["box"] == pytest.approx([0, 0, -0.006], abs=3e-4)
     assert r["passed"] and r["unsupported"] == [] and r["max_drift"] < 1e-3
 
 
@@ -149,7 +174,7 @@ def test_gap_between_convex_meshes_is_read_exactly(tmp_path):
 <body name="box" pos="0.2 0.1 {0.52 + 0.012 + 0.03}"><freejoint/><geom type="mesh" mesh="cube" mass="0.3"/></body>
 </worldbody></mujoco>"""
     r = check_mjcf(_write(tmp_path, text))
-    assert r["nudges"]["box"] == pytest.approx(-0.012, abs=3e-4)
+    assert r["nudges"]["box"] == pytest.approx([0, 0, -0.012], abs=3e-4)
     assert r["passed"] and r["max_drift"] < 1e-3
 
 
@@ -173,4 +198,5 @@ def test_lowering_onto_a_ridge_does_not_leave_the_body_inside_it(tmp_path):
     mujoco.mj_forward(model, data)
     worst = min((data.contact[i].dist for i in range(data.ncon)), default=0.0)
     assert worst >= -1.5e-3, worst                    # not left inside the ridge
-    assert -0.006 < nudges.get("box", 0.0) < 0.0      # came down onto it, by about its real gap
+    dx, dy, dz = nudges.get("box", (0.0, 0.0, 0.0))
+    assert -0.006 < dz < 0.0 and abs(dx) < 1e-3 and abs(dy) < 1e-3      # came down onto it, by about its real gap
