@@ -537,6 +537,21 @@ def test_rest_on_support_gives_a_resting_ball_a_base_under_its_com():
     assert rest_on_support(ball.copy().apply_translation([0, 0, 0.2]), 0.0)[1] is False   # not resting
 
 
+def test_rest_on_support_of_a_piece_with_no_volume_is_quiet():
+    # a flat fused piece (both sides of a sheet: volume 0) leaning on the support: trimesh's centre
+    # of mass is 0 / 0 there (NaN and a RuntimeWarning printed in a real capture's export)
+    import warnings
+
+    from psimap.exporters.objects import rest_on_support
+
+    sheet = trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0.05], [0.1, 0.1, 0.05]],
+                            [[0, 1, 2], [1, 3, 2], [0, 2, 1], [1, 2, 3]], process=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out, grew = rest_on_support(sheet, 0.0)
+    assert out is sheet and grew is False          # an edge on the support: no footprint to extrude
+
+
 def test_fused_instance_voxel_is_bounded_by_size_and_renders():
     """Issue #17: a 37 cm ball of 1 mm surfels fused at 0.75 mm voxels gave ~800k faces (minutes,
     or no surface when the voxel hash map gave up). The voxel stays at or above the instance's
