@@ -61,7 +61,7 @@ def _penetrations(model, data) -> tuple[float, dict[int, float], set[int]]:
 
 
 def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rounds: int = 20,
-                        margin: float = 2e-4, max_gap: float = 0.02) -> dict[str, float]:
+                        margin: float = 2e-4, max_gap: float = 0.02) -> dict[str, list[float]]:
     """Move penetrating free bodies out along the contact normal until min contact.dist >=
     -max_penetration (`_push_out`), then lower free bodies that hover more than max_penetration and
     at most `max_gap` above their support onto it (`lower_onto_supports`).
@@ -93,16 +93,20 @@ def resolve_penetration(path: str | Path, max_penetration: float = 1e-3, max_rou
     return {k: [float(x) for x in v] for k, v in sorted(nudges.items())}
 
 
+_COS_45 = float(np.cos(np.pi / 4))
+
+
 def _push_out(tree, bodies: dict, path: Path, nudges: dict[str, np.ndarray], max_penetration: float,
               margin: float, max_rounds: int) -> None:
-    """Move penetrating free bodies out along the contact normal until min contact.dist >=
-    -max_penetration: per round each such body leaves its deepest contact by its depth + margin.
-    Of two free bodies in contact the one the separation moves up leaves (the cup leaves the table
-    under it, never the table the cup: lifting the support drops what it carries); side by side
-    (a normal within 30 degrees of horizontal) the lighter one. A body sunk into a wall leaves it
-    sideways (lifting it, as this once did, never clears a vertical face: a real capture's object
-    touching a wall went up 20 cm in 2.8 mm steps and the penetration stayed). Edits `tree`, adds
-    to `nudges`."""
+    """Move penetrating free bodies out of their contacts until min contact.dist >= -max_penetration:
+    per round each such body leaves its deepest contact by its depth + margin along the contact
+    normal, or straight up (down) when that normal is within 45 degrees of vertical, so a body on a
+    tilted hull face or near a table's edge is never slid sideways. Of two free bodies in contact
+    the one the separation moves up leaves (the cup leaves the table under it, never the table the
+    cup: lifting the support drops what it carries); side by side (a normal within 30 degrees of
+    horizontal) the lighter one. A body sunk into a wall leaves it sideways (lifting it, as this
+    once did, never clears a vertical face: a real capture's object touching a wall went up 20 cm
+    in 2.8 mm steps and the penetration stayed). Edits `tree`, adds to `nudges`."""
     import mujoco
 
     for _ in range(max_rounds):
@@ -137,6 +141,8 @@ def _push_out(tree, bodies: dict, path: Path, nudges: dict[str, np.ndarray], max
         if not moves:
             return
         for b, (depth, d) in moves.items():
+            if abs(d[2]) >= _COS_45:          # on (under) a support: clear the contact plane vertically
+                d = np.array([0.0, 0.0, (1.0 if d[2] > 0 else -1.0) / abs(d[2])])
             _shift_body(bodies, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b), (depth + margin) * d, nudges)
 
 

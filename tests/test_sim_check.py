@@ -56,6 +56,36 @@ def test_penetration_into_a_wall_is_resolved_sideways(tmp_path):
     assert r["static_bodies"] == ["wall"]
 
 
+def test_penetration_into_a_tilted_support_is_resolved_straight_up(tmp_path):
+    """A box sunk 3 mm into a static ramp tilted 20 degrees (an object on a sloped hull face): it
+    goes straight up until the contact plane is cleared (3 mm / cos 20), never sideways along the
+    normal, which slides an object near a support's edge off it."""
+    import mujoco
+
+    from psimap.sim.check import resolve_penetration
+
+    tilt = np.radians(20.0)
+    ramp = (f'<body name="ramp" pos="0 0 0.1" euler="0 {tilt:.6f} 0"><geom type="box" size="0.5 0.5 0.1"/>'
+            '</body>\n')
+    box = ('<body name="box" pos="0 0 0" euler="0 {t:.6f} 0"><freejoint/>'
+           '<geom type="box" size="0.05 0.05 0.05" mass="0.2"/></body>\n').format(t=tilt)
+    # the box's bottom face 3 mm below the ramp's top face, along the ramp's normal, over its centre
+    n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    centre = np.array([0, 0, 0.1]) + n * (0.1 + 0.05 - 0.003)
+    box = box.replace('pos="0 0 0"', 'pos="{:.6f} {:.6f} {:.6f}"'.format(*centre))
+    text = """<mujoco><compiler angle="radian"/><option timestep="0.002"/><worldbody>
+<geom name="floor" type="plane" size="0 0 0.05"/>{}{}</worldbody></mujoco>""".format(ramp, box)
+    p = _write(tmp_path, text)
+    nudges = resolve_penetration(p, max_gap=0.0)
+    dx, dy, dz = nudges["box"]
+    assert abs(dx) < 1e-6 and abs(dy) < 1e-6
+    assert dz == pytest.approx((0.003 + 2e-4) / np.cos(tilt), abs=2e-4)
+    model = mujoco.MjModel.from_xml_path(str(p))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    assert min((data.contact[i].dist for i in range(data.ncon)), default=0.0) >= -1e-3
+
+
 def test_free_bodies_side_by_side_the_lighter_one_leaves(tmp_path):
     # two boxes on the floor, 4 mm into each other sideways: the 0.2 kg one leaves the 1 kg one
     light = ('<body name="light" pos="0.146 0 0.05"><freejoint/>'
