@@ -58,8 +58,16 @@ def _to_trimesh(man):
     if len(out.faces):
         parts = out.split(only_watertight=True)
         if len(parts) > 1:      # a cut can leave crumbs: the object is its largest piece
-            out = max(parts, key=lambda p: p.volume)
+            out = largest_piece(parts)
     return out
+
+
+def largest_piece(parts):
+    """The part of largest volume of watertight trimesh parts. A flat crumb has volume 0 and
+    trimesh's mass properties divide by it for its centre of mass (a RuntimeWarning on the console of
+    a 7-Scenes export): silenced, the volume alone is read."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return max(parts, key=lambda p: float(p.volume))
 
 
 def make_consistent(objects, floor_z: float | None = None, *, max_extent: float = MAX_EXTENT,

@@ -143,6 +143,22 @@ def test_carved_solid_yields_to_an_observed_one():
     assert any("overlap with box_2" in s for s in table.measured.repair_steps)
 
 
+def test_largest_piece_of_a_cut_ignores_a_flat_crumb_quietly():
+    # a cut left a flat crumb (both sides of a sheet: volume 0) beside the object's body: the body
+    # is kept, and reading the crumb's volume prints nothing (trimesh divides by it for its centre)
+    import warnings
+
+    from psimap.exporters.consistency import largest_piece
+
+    body = trimesh.creation.box(extents=[0.1, 0.08, 0.06])
+    crumb = trimesh.Trimesh([[0.2, 0, 0], [0.3, 0, 0], [0.2, 0.1, 0.02], [0.3, 0.1, 0.02]],
+                            [[0, 1, 2], [1, 3, 2], [0, 2, 1], [1, 2, 3]], process=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert largest_piece([crumb, body]) is body
+        assert largest_piece([body, crumb]) is body
+
+
 def test_floor_cut_swallowed_and_room_sized_objects():
     below = _obj(_box([0.2, 0.2, 0.2], [0, 0, 0.05]), 1)           # 5 cm below the floor
     inside = _obj(_box([0.05, 0.05, 0.05], [0.0, 0.0, 0.1]), 2)    # inside `below`
