@@ -272,8 +272,13 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
         if res["passed"] or res["nan"] or res["exploded"] or res["penetrating"] or not movers:
             break
         for o in movers:
-            moved = res["drift"].get(o.name, res["fell"].get(o.name, 0.0))
-            pinned[o.name] = f"unstable in the settle check (moved {moved * 100:.1f} cm in 2 s)"
+            if o.name in res["fell"]:
+                # nothing within the support gap under it at t = 0: a piece of a wall or of furniture
+                # labelled a thing (a real capture's model-free masks), or its support went unseen
+                pinned[o.name] = (f"nothing under it in the settle check (fell {res['fell'][o.name] * 100:.1f} cm "
+                                  "in 2 s): part of the static world, or its support was not reconstructed")
+            else:
+                pinned[o.name] = f"unstable in the settle check (moved {res['drift'][o.name] * 100:.1f} cm in 2 s)"
             o.make_static(Reason.UNSTABLE, pinned[o.name])
         res = check_mjcf(write_mjcf(scene, work_dir), settled=settled)
     res["pinned"] = pinned

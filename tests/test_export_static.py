@@ -179,6 +179,24 @@ def test_unstable_object_is_pinned_static_and_the_check_passes(tmp_path):
     assert c["bodies"] == 0 and sorted(c["static_bodies"]) == ["box_2", "table_1"]
 
 
+def test_a_thing_with_nothing_under_it_is_pinned_for_that_reason(tmp_path):
+    """A box 20 cm above the floor beside the ramp, nothing under it (on a real capture: a piece of
+    a wall or of a chair that model-free masks called a thing): it falls in the settle check and is
+    pinned, and its reason says so rather than "unstable"."""
+    from psimap.exporters.objects import build_object
+    from psimap.exporters.pipeline import export_scene
+
+    ramp, sliding = _box_on_ramp()
+    floating = build_object(trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([-0.6, 0.0, 0.25]),
+                            "box", 3, completion="none")
+    r = export_scene([ramp, sliding, floating], tmp_path / "out", "mjcf")
+    c = r["check"]
+    assert c["passed"], c["failures"]
+    assert sorted(c["pinned"]) == ["box_2", "box_3"]
+    assert c["pinned"]["box_3"].startswith("nothing under it in the settle check (fell 20.0 cm")
+    assert c["pinned"]["box_2"].startswith("unstable in the settle check (moved ")
+
+
 def test_one_role_maps_onto_the_report_keys():
     """report.json keeps its contract: "static" for every static role, "static_reason" for all but
     the environment (which needs none), "skipped" for a skipped object."""
