@@ -234,7 +234,8 @@ def test_failed_check_gives_nonzero_exit_with_report(tmp_path, monkeypatch, caps
     opts.no_pin_unstable, opts.out = False, str(tmp_path / "pinned")
     assert cli_export(opts) == 0
     text = capsys.readouterr().out
-    assert "simulation check passed" in text and "box_1 exported static: unstable in the settle check" in text
+    assert "simulation check passed" in text
+    assert "box_1 exported static: nothing under it in the settle check (fell 25.0 cm in 2 s)" in text
     rep = json.loads((tmp_path / "pinned" / "report.json").read_text())
     assert list(rep["check"]["pinned"]) == ["box_1"] and rep["check"]["fell"] == {}
     opts.no_check, opts.out = True, str(tmp_path / "out2")
