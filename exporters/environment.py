@@ -635,6 +635,64 @@ def furniture_tops(mesh, *, voxel: float = 0.01, min_area: float = MIN_SUPPORT_A
     return one_level_per_top(supports, merge=max(TOP_MERGE, 3 * voxel))
 
 
+def tops_under_things(mesh, known, things, *, band: float = 0.03, min_area: float = MIN_CLUTTER_AREA,
+                      merge: float = TOP_MERGE, clearance: float = 0.05) -> list:
+    """[Support] levels of a static furniture object's fused surface (watertight or not, world
+    frame) that `furniture_tops` missed but where `things` (trimesh meshes of the other things) stand.
+
+    A shelf board seen edge-on from the front fuses to little up-facing surface (the generated
+    room's board under three bottles: 0.005 m², against 0.08-0.10 m² for the boards seen from
+    above, and MIN_SUPPORT_AREA is 0.01), so it got no slab, the furniture's coarse decomposition
+    stood in for it (a hull 2 cm above the board, sloped 6 degrees) and a bottle lifted onto it
+    tipped and was pinned. The things on the board say where it is: a thing whose bottom lies
+    over the furniture's plan-view box, above its foot (`clearance`), on none of the `known`
+    supports, and with at least `min_area` of the furniture's up-facing surface in the `band`
+    below its bottom, marks a level there: its height is that surface's (area-weighted), its
+    footprint the plan-view hull of that surface and the bottoms of the things that marked it.
+    Things within `merge` of each other in height mark one level."""
+    if mesh is None or len(getattr(mesh, "faces", [])) == 0 or not things:
+        return []
+    lo, hi = np.asarray(mesh.bounds, np.float64)
+    T = np.asarray(mesh.triangles, np.float64)
+    up = np.asarray(mesh.face_normals, np.float64)[:, 2] >= np.cos(np.radians(PLANE_DEGREES))
+    centres, areas = _face_centres(T)[up], np.asarray(mesh.area_faces, np.float64)[up]
+    boxes = [np.asarray(t.bounds, np.float64) for t in things if len(getattr(t, "vertices", []))]
+    marks = []                                  # (bottom z, bottom points [k, 2]) of things on a missed level
+    for t in things:
+        v = np.asarray(t.vertices, np.float64)
+        if len(v) == 0:
+            continue
+        z = float(v[:, 2].min())
+        base = v[v[:, 2] <= z + 0.01, :2]
+        c = base.mean(axis=0)
+        if not (lo[2] + clearance < z < hi[2] + band and np.all(c >= lo[:2]) and np.all(c <= hi[:2])):
+            continue
+        if support_under(known, c, z) is not None:
+            continue
+        # standing on another thing (a box on a book): that thing is its support, not a board
+        if any(z - band <= b[1, 2] <= z + 0.01 and np.all(c >= b[0, :2]) and np.all(c <= b[1, :2])
+               for b in boxes if b[1, 2] < z + 0.01 and not np.array_equal(b, np.asarray(t.bounds))):
+            continue
+        near = (centres[:, 2] >= z - band) & (centres[:, 2] <= z + 0.01)
+        if areas[near].sum() >= min_area:
+            marks.append((z, base))
+    levels = []
+    for z, base in sorted(marks, key=lambda m: m[0]):
+        if levels and z - levels[-1][0][-1] <= merge:
+            levels[-1][0].append(z)
+            levels[-1][1].append(base)
+        else:
+            levels.append(([z], [base]))
+    out = []
+    for zs, bases in levels:
+        near = (centres[:, 2] >= min(zs) - band) & (centres[:, 2] <= max(zs) + 0.01)
+        height = float(np.average(centres[near, 2], weights=areas[near]))
+        poly = _hull_2d(np.concatenate([centres[near, :2], *bases]))
+        if len(poly) >= 3:
+            out.append(Support(height, poly, float(areas[near].sum())))
+    return out
+
+
 def one_level_per_top(supports, *, merge: float = 0.03) -> list:
     """`supports` without the levels a fused top's waviness adds: a smaller level within `merge` (m)
     of a larger one, lying on its footprint, is the same top. (A table fused 1.3 cm higher over one

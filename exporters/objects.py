@@ -539,7 +539,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
     from psimap.exporters.environment import (add_support_slabs, clear_above_top, flatten_solid, flatten_under,
-                                              furniture_tops, static_environment)
+                                              furniture_tops, static_environment, tops_under_things)
     from psimap.exporters.collision import solid_parts
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.physics import is_static_class
@@ -556,6 +556,11 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     floor_z = env.floor_z if env.floor_observed else None
     tops = {item.instance_id: furniture_tops(item.mesh, voxel=inst.voxel_size) for item in inst.things
             if is_static_class(item.label, static_classes) and item.mesh is not None and len(item.mesh.faces)}
+    # levels too little seen from above to be found (a shelf board seen edge-on) where things stand
+    movable = [t.mesh for t in inst.things if t.instance_id not in tops and t.mesh is not None and len(t.mesh.faces)]
+    for item in inst.things:
+        if item.instance_id in tops:
+            tops[item.instance_id] += tops_under_things(item.mesh, env.supports + tops[item.instance_id], movable)
     clock.add(timings, "environment", t0)
     objs, views_of, surfels_of = [], {}, {}
     for item in tqdm(inst.things, desc="object solids", disable=not progress, leave=False):

@@ -192,6 +192,70 @@ def test_a_wavy_furniture_top_is_one_level_and_shelf_boards_stay_apart():
     assert sorted(round(s.height, 2) for s in furniture_tops(boards, voxel=0.005)) == [0.41, 0.71]
 
 
+def test_a_board_seen_edge_on_is_found_where_things_stand_on_it():
+    """A shelf board seen from the front fuses to a thin up-facing strip (room: 0.005 m² for a
+    0.3 m² board), below MIN_SUPPORT_AREA: furniture_tops misses it, its coarse decomposition
+    stood in and a bottle on it tipped and was pinned. The bottle marks the level; a thing on the
+    floor, one on the found bottom board, one on a book on the board (beside a ledge at the book's
+    height) and one in mid-air mark none."""
+    import trimesh
+
+    from psimap.exporters.environment import furniture_tops, tops_under_things
+
+    def box(ext, at):
+        return trimesh.creation.box(extents=ext).apply_translation(at)
+
+    shelf = trimesh.util.concatenate([
+        box([0.02, 0.3, 1.0], [-0.41, 0, 0.5]), box([0.02, 0.3, 1.0], [0.41, 0, 0.5]),     # sides
+        box([0.8, 0.3, 0.04], [0, 0, 0.02]),                                                # bottom board, seen
+        box([0.8, 0.01, 0.02], [0, -0.145, 0.70]),                                         # the board's front edge
+        box([0.25, 0.01, 0.02], [0.275, -0.145, 0.78])]).subdivide_to_size(0.02)          # a ledge as high as the book
+    known = furniture_tops(shelf, voxel=0.005)
+    assert [round(s.height, 2) for s in known] == [0.04]          # the side panels' tops are too small too
+    bottle = trimesh.creation.cylinder(radius=0.035, height=0.2).apply_translation([0.1, 0.05, 0.71 + 0.1])
+    book = box([0.2, 0.15, 0.08], [-0.2, 0.0, 0.71 + 0.04])
+    on_book = box([0.06, 0.06, 0.06], [-0.2, 0.0, 0.79 + 0.03])
+    on_floor = box([0.1, 0.1, 0.1], [0.0, 0.0, 0.05])             # inside the shelf's plan, on the floor
+    on_bottom = box([0.1, 0.1, 0.1], [0.2, 0.0, 0.04 + 0.05])
+    mid_air = box([0.05, 0.05, 0.05], [0.0, 0.0, 0.45])
+    found = tops_under_things(shelf, known, [bottle, book, on_book, on_floor, on_bottom, mid_air])
+    assert len(found) == 1
+    assert found[0].height == pytest.approx(0.71, abs=2e-3)
+    assert found[0].contains([0.1, 0.05]) and found[0].contains([-0.2, 0.0])     # under the bottle and the book
+    assert tops_under_things(shelf, known, [on_floor, on_bottom, mid_air]) == []
+    assert tops_under_things(shelf, known + found, [bottle]) == []               # a level once
+
+
+def test_a_box_on_a_board_seen_edge_on_is_exported_and_rests(tmp_path):
+    """Through the export: a shelf (static furniture) whose middle board the cameras see from 5 mm
+    above its top, a box standing on it. Without the board's level the shelf's solid filled the
+    space over it and the box was skipped, "inside the collider of shelf_7: 1 % of its volume
+    left after the cut"; with it the box is exported dynamic and rests on a slab at the board."""
+    from psimap.camera import camera_rig, look_at
+    from psimap.data.frames import ClassInfo
+    from psimap.exporters.pipeline import export_scene
+    from psimap.scene import scene_from_meshes
+
+    def box(ext, at):
+        return trimesh.creation.box(extents=ext).apply_translation(at)
+
+    floor = box([3, 3, 0.02], [0, 0, -0.01])
+    shelf = trimesh.util.concatenate([box([0.02, 0.3, 1.0], [-0.41, 0, 0.5]), box([0.02, 0.3, 1.0], [0.41, 0, 0.5]),
+                                      box([0.8, 0.3, 0.04], [0, 0, 0.02]), box([0.8, 0.3, 0.02], [0, 0, 0.70]),
+                                      box([0.84, 0.02, 1.0], [0, 0.16, 0.5])])
+    thing = box([0.1, 0.08, 0.14], [0.1, 0.0, 0.71 + 0.07])
+    c2ws = [look_at(np.array([1.3 * np.sin(a), -1.3 * np.cos(a), 0.715]), np.array([0, 0, 0.6]))
+            for a in np.linspace(-0.9, 0.9, 8)]
+    classes = [ClassInfo(1, "floor", False), ClassInfo(2, "shelf", True), ClassInfo(3, "box", True)]
+    scene = scene_from_meshes([floor, shelf, thing], [0, 7, 8], [1, 2, 3], classes, camera_rig(c2ws, 96, 72, 80.0))
+    r = export_scene(scene, tmp_path / "out", "mjcf", completion="auto")
+    assert r["skipped"] == [], r["skipped"]
+    assert {o["name"]: o["static"] for o in r["objects"]} == {"shelf_7": True, "box_8": False}
+    assert any(abs(s["height"] - 0.71) < 0.015 for s in r["environment"]["supports"])
+    c = r["check"]
+    assert c["passed"] and c["pinned"] == {} and c["drift"]["box_8"] < 0.005, c
+
+
 def test_the_space_over_a_top_under_a_thing_is_the_things():
     """Issue #17: carving kept what the things on a table hide (and the table's label bled onto
     their bottoms): the table rose 6 cm above its top under them and cut every thing. Over its top,
