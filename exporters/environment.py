@@ -656,9 +656,9 @@ def tops_under_things(mesh, known, things, *, band: float = 0.03, min_area: floa
     T = np.asarray(mesh.triangles, np.float64)
     up = np.asarray(mesh.face_normals, np.float64)[:, 2] >= np.cos(np.radians(PLANE_DEGREES))
     centres, areas = _face_centres(T)[up], np.asarray(mesh.area_faces, np.float64)[up]
-    boxes = [np.asarray(t.bounds, np.float64) for t in things if len(getattr(t, "vertices", []))]
+    boxes = [np.asarray(t.bounds, np.float64) if len(t.vertices) else None for t in things]
     marks = []                                  # (bottom z, bottom points [k, 2]) of things on a missed level
-    for t in things:
+    for i, t in enumerate(things):
         v = np.asarray(t.vertices, np.float64)
         if len(v) == 0:
             continue
@@ -670,8 +670,8 @@ def tops_under_things(mesh, known, things, *, band: float = 0.03, min_area: floa
         if support_under(known, c, z) is not None:
             continue
         # standing on another thing (a box on a book): that thing is its support, not a board
-        if any(z - band <= b[1, 2] <= z + 0.01 and np.all(c >= b[0, :2]) and np.all(c <= b[1, :2])
-               for b in boxes if b[1, 2] < z + 0.01 and not np.array_equal(b, np.asarray(t.bounds))):
+        if any(b is not None and j != i and z - band <= b[1, 2] <= z + 0.01 and np.all(c >= b[0, :2])
+               and np.all(c <= b[1, :2]) for j, b in enumerate(boxes)):
             continue
         near = (centres[:, 2] >= z - band) & (centres[:, 2] <= z + 0.01)
         if areas[near].sum() >= min_area:

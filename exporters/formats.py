@@ -33,8 +33,9 @@ class ExportScene:
     surfaces) as a visual SceneObject, or None. floor_z: height of the floor plane that carries
     contacts. nudges: {object name: [dx, dy, dz]} metres from the MuJoCo settle check (out of a
     penetration along its contact normal, down onto a support); writers place object `o` at its
-    reconstructed pose moved by `offset(o)`. environment: the static world's colliders (exporters.environment.StaticEnvironment:
-    supports, walls, ceilings, clutter; every writer that simulates emits all of them), or None.
+    reconstructed pose moved by `offset(o)`. environment: the static world's colliders
+    (exporters.environment.StaticEnvironment: supports, walls, ceilings, clutter; every writer that
+    simulates emits all of them), or None.
     """
 
     objects: tuple
