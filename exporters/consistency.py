@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psimap.completion.meshops import closed_convex_hull, is_closed, to_manifold
+from psimap.completion.meshops import closed_convex_hull, is_closed, signed_volume, to_manifold
 from psimap.exporters.roles import Reason, Role
 
 # an object this much wider than the largest thing class a robot moves (a table: ~2 m) is not one
@@ -63,11 +63,10 @@ def _to_trimesh(man):
 
 
 def largest_piece(parts):
-    """The part of largest volume of watertight trimesh parts. A flat crumb has volume 0 and
-    trimesh's mass properties divide by it for its centre of mass (a RuntimeWarning on the console of
-    a 7-Scenes export): silenced, the volume alone is read."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return max(parts, key=lambda p: float(p.volume))
+    """The part of largest volume of watertight trimesh parts. The volume alone (signed_volume):
+    trimesh's `volume` computes every mass property, and a flat crumb's centre of mass divides by
+    its zero volume (a RuntimeWarning on the console of a 7-Scenes export)."""
+    return max(parts, key=lambda p: signed_volume(p.vertices, p.faces))
 
 
 def make_consistent(objects, floor_z: float | None = None, *, max_extent: float = MAX_EXTENT,

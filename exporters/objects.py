@@ -346,17 +346,15 @@ def rest_on_support(mesh, z: float, band: float = 0.15, max_gap: float = 0.05):
     import trimesh
 
     from psimap.completion.meshops import convex_hull, is_closed
+    from psimap.exporters.physics import centre_of_volume
 
     v = np.asarray(mesh.vertices, np.float64)
     lo, hi = float(v[:, 2].min()), float(v[:, 2].max())
     if lo - z > max_gap or hi - z <= 0:
         return mesh, False
-    # a flat fused piece has no volume: trimesh's centre of mass is then 0 / 0 (NaN, and a
-    # RuntimeWarning on the console of a 7-Scenes export); the vertices' mean stands in
-    with np.errstate(invalid="ignore", divide="ignore"):
-        com = np.asarray(mesh.center_mass, np.float64)
-    if not np.isfinite(com).all():
-        com = v.mean(axis=0)
+    # a flat fused piece has no volume: trimesh's centre of mass is 0 / 0 there (a RuntimeWarning on
+    # the console of a 7-Scenes export), centre_of_volume the vertices' mean
+    com = centre_of_volume(mesh)
     base = v[v[:, 2] < z + 1e-3, :2]
     if len(base) >= 3:
         try:

@@ -193,6 +193,12 @@ def mass_properties(mesh, label: str, *, densities: dict[str, float] | None = No
                    mass_range=(float(mass_range[0]), float(mass_range[1])), areal_density=float(areal))
 
 
+def centre_of_volume(mesh) -> np.ndarray:
+    """[3] the centroid of the solid a closed trimesh encloses (`_integrate`); the vertices' mean
+    for one that encloses no volume (trimesh's center_mass divides by zero there)."""
+    return _integrate(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces))[1]
+
+
 def _integrate(v: np.ndarray, f: np.ndarray):
     """Volume, centroid, and unit-density inertia about the centroid of a closed triangle mesh.
 
