@@ -23,8 +23,9 @@ def far_wall(tmp_path_factory):
 
 
 def _init(data, **kw):
+    """The prior's surfels with TrainConfig's defaults (spacing by viewing distance) and kw."""
     seq = load(data)
-    cfg = TrainConfig(**{**B.AFTER, **kw})
+    cfg = TrainConfig(**kw)
     fr, _, _, _ = prepare_frames(seq, cfg, log=lambda m: None)
     spacing = target_spacing(fr, cfg.spacing_pixels)
     logs = []

@@ -31,7 +31,7 @@ CALLS1 = {
                  "--objects", "5", "--noise", "0.3", "--lidar", "--pose-noise", "0.01", "--layout", "room"],
     # the smallest demo whose export passes its check and its outcome (tests/test_cli_generate_demo.py)
     "demo": ["demo", "--out", "{tmp}/demo", "--seed", "1", "--frames", "8", "--width", "64", "--height", "48",
-             "--iters", "100", "--panoptic-iters", "20"],
+             "--iters", "100", "--panoptic-iters", "60"],
     "bad_format": ["export", "{tmp}/none.ckpt", "--format", "fbx"],
     # psimap batch's runs are in tests/test_batch.py; here its options reach the command's first check
     "batch_missing": ["batch", "{tmp}/missing.toml", "--out", "{tmp}/b", "--scheduler", "tcp://127.0.0.1:9",

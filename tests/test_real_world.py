@@ -165,7 +165,10 @@ def test_mug_is_weighed_as_a_shell(export_dir):
     mug = [o for o in rep["objects"] if o["class"] == "mug"][0]["physics"]
     assert mug["mass_model"] == "shell" and mug["density_key"] == "shell:mug"
     lo, hi = mug["mass_range_kg"]
-    assert lo < mug["mass_kg"] < hi and 0.08 < mug["mass_kg"] < 0.3
+    # a ceramic mug this size weighs 0.25-0.4 kg; its scan's shell weighed 0.301 kg with the
+    # packages of 2026-11-28 (the former bound 0.3 failed by 1 g); its 0.79 l as solid ceramic
+    # (2400 kg/m^3) would be 1.9 kg
+    assert lo < mug["mass_kg"] < hi and 0.08 < mug["mass_kg"] < 0.4
     box = [o for o in rep["objects"] if o["class"] == "box"][0]["physics"]
     assert box["mass_model"] == "solid" and box["mass_range_kg"][0] < box["mass_kg"] < box["mass_range_kg"][1]
 
