@@ -103,11 +103,11 @@ class TrainConfig:
                                      "distance (spacing_pixels footprints there; a far wall coarser than a "
                                      "near table), large planar stuff stuff_spacing_factor coarser; False: "
                                      "one spacing at the median depth for all. On by default since "
-                                     "2026-11-28 (#20; seed 0, False -> True): tabletop 129k -> 52k surfels, "
-                                     "train 88 -> 49 s, F1 0.872 -> 0.874, PQ 0.984 -> 0.984; room 136k -> "
-                                     "56k, 85 -> 64 s, PQ 0.924 -> 0.929; demo PQ 0.773 -> 0.815 (mean of "
-                                     "seeds 0-2; the 0.869 -> 0.818 that kept it off was one run inside the "
-                                     "demo's seed-to-seed spread)")
+                                     "2026-11-28 (#20; False -> True, benchmarks/RESULTS.md end_to_end): "
+                                     "tabletop 129k -> 52k surfels, train 88 -> 60 s, F1 0.872 -> 0.874, PQ "
+                                     "0.984 -> 0.984; room 136k -> 56k, train 74 -> 61 s, PQ 0.924 -> 0.929; "
+                                     "demo PQ 0.773 -> 0.815 (mean of seeds 0-2; the 0.869 -> 0.818 that kept "
+                                     "it off was one run inside the demo's seed-to-seed spread)")
     stuff_spacing_factor: float = _f(2.0, "large planar stuff (components off things whose shorter side spans "
                                           "trainer.LARGE_PLANE_SPACINGS spacings: walls, floor, ceiling) is "
                                           "spaced this many times coarser (1 = no change)")
