@@ -417,16 +417,16 @@ def test_a_stray_stuff_class_gives_its_surfels_to_their_next_class():
 
 
 def test_one_query_per_object_seen_in_several_frames():
-    """init_queries: one mask per object and frame gives one query each (every step costs in
-    proportion to the queries); with init_merge, masks of different frames that show one object
-    share one, and no query joins the two boxes."""
+    """init_queries: one mask per object and frame gives one query each with init_merge 0 (every
+    step costs in proportion to the queries); by default (init_merge 0.6) masks of different frames
+    that show one object share one, and no query joins the two boxes."""
     from psimap.panoptic.field import init_queries
     from psimap.panoptic.fit import view_of
 
     s, frames, _ = _two_box_scene(n_frames=6)
     views = [view_of(f) for f in frames]
-    merged = init_queries(views, CLASSES, PanopticConfig(init_frames=6, init_merge=0.6), scene_scale=1.2)
-    apart = init_queries(views, CLASSES, PanopticConfig(init_frames=6), scene_scale=1.2)     # the default
+    merged = init_queries(views, CLASSES, PanopticConfig(init_frames=6), scene_scale=1.2)     # the default
+    apart = init_queries(views, CLASSES, PanopticConfig(init_frames=6, init_merge=0.0), scene_scale=1.2)
     assert apart.count == 12 and 2 <= merged.count <= 6
     # each query sits on one box (box centres at x = -0.35 and 0.35)
     x = merged.mean[:, 0]

@@ -16,13 +16,13 @@ class PanopticConfig:
     init_frames: int = 16           # frames (spread over the sequence) whose masks seed the queries
     # masks of two of those frames share a query when each puts at least this share of the points
     # the other frame sees inside the other mask (associate.same_object_groups; one object seen
-    # twice); 0 = one query per mask. Fewer initial queries, so cheaper first steps: 0.6 gave
-    # tabletop 44 -> 5, room 93 -> 24, demo 85 -> 37, no group holding two objects. Off by default:
-    # over 3-6 view orders the room's panoptic phase took ~25 % less (PQ 0.937-0.939 against
-    # 0.856-0.938) and the tabletop's PQ held (0.984-0.985), but the demo lost 0.02-0.05 PQ (its
-    # 5-20 px mugs and bottles: their spawned queries are dropped as empty, where unmerged seeds
-    # leave a spare query to take them over)
-    init_merge: float = 0.0
+    # twice); 0 = one query per mask. Fewer initial queries (tabletop 44 -> 5, room 93 -> 24, demo
+    # 85 -> 37, no group holding two objects), so cheaper first steps and an earlier settle: with
+    # surfels spaced by viewing distance, over 6 / 3 / 3 view orders the demo's phase took 9.3 ->
+    # 6.8 s (PQ 0.808 -> 0.811), the room's 11.9 -> 8.8 s (0.923 -> 0.931), the tabletop's 12.2 ->
+    # 9.2 s (0.952 -> 0.983). (Off until 2026-11-28: on the denser surfels before, the demo lost
+    # 0.02-0.05 PQ, its 5-20 px mugs and bottles going with the spare seed queries.)
+    init_merge: float = 0.6
     # the semantic logits start from the labelled views' class votes on the surfels they see
     # (psimap.panoptic.lift), not from zero; False = the uniform start
     lift_semantic: bool = True
