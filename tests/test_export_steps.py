@@ -233,6 +233,42 @@ def test_decimation_probes_start_from_the_last_candidate_that_met_the_budget(mon
         if cap is not None:
             assert probes[0][:2] == (len(s.faces), cap)                  # the cap first, from the input
 
+def test_a_simplification_that_opens_a_few_edges_of_a_closed_solid_is_closed_again(monkeypatch):
+    # MeshLab's collapse of a room's carved shelf (132k faces, genus 49) left a 5-edge hole at every
+    # count tried: no closed candidate, so the unreduced solid was exported (25x its face budget)
+    # and its colliders took a mug's place. Holes up to MAX_PATCH_EDGES edges are closed again; a
+    # real opening (a sphere's cut-off cap) stays open
+    import pymeshlab
+
+    from psimap.exporters import decimate as D
+
+    s = trimesh.creation.icosphere(subdivisions=4, radius=0.1)        # 5120 faces, closed
+    real = pymeshlab.MeshSet.meshing_decimation_quadric_edge_collapse
+
+    def opening(ms, **kw):                      # the collapse, then two faces gone: a small hole
+        real(ms, **kw)
+        ms.compute_selection_by_condition_per_face(condselect="(fi == 0) || (fi == 1)")
+        ms.meshing_remove_selected_faces()
+
+    monkeypatch.setattr(pymeshlab.MeshSet, "meshing_decimation_quadric_edge_collapse", opening)
+    out = D.simplify_to_count(s, 1000, "meshlab")
+    assert out.is_watertight and 995 <= len(out.faces) <= 1005
+    assert out.volume == pytest.approx(s.volume, rel=0.03)
+    r = D.decimate_to_budget(s, 0.01, max_faces=1000)
+    assert r.mesh.is_watertight and r.faces_after <= 1000
+    monkeypatch.undo()
+    # the helper on its own: two faces' hole closed, a 40-edge cap opening kept
+    holed = s.copy()
+    holed.update_faces(np.arange(len(s.faces)) >= 2)
+    holed.remove_unreferenced_vertices()
+    assert not holed.is_watertight and D.close_small_holes(holed).is_watertight
+    cap = s.copy()
+    cap.update_faces(s.triangles_center[:, 2] < 0.09)
+    cap.remove_unreferenced_vertices()
+    ring = int((np.unique(np.sort(cap.edges, 1), axis=0, return_counts=True)[1] == 1).sum())
+    assert ring > D.MAX_PATCH_EDGES and not D.close_small_holes(cap).is_watertight
+
+
 # ---------------------------------------------------------------- collision
 def test_primitives_are_recognised():
     ball = trimesh.creation.icosphere(3, radius=0.05).apply_translation([1, 2, 3])
