@@ -110,7 +110,8 @@ def same_object_groups(points: list[np.ndarray], frame: list[int], mask_id: list
             p = p[rng.choice(len(p), ASSOCIATE_POINTS, replace=False)]
         sample.append(p)
     # every mask's points projected into a frame at once: one landing_ids per frame, not per mask
-    # and frame (the demo's 85 masks x 15 frames: ~0.4 s; a real capture's 305: ~1.5 s)
+    # and frame (the demo's 85 masks x 15 frames 1.2 -> 0.19 s, a real capture's 150 masks 2.6 ->
+    # 0.17 s, measured beside a running export)
     offsets = np.zeros(g + 1, dtype=np.int64)
     np.cumsum([len(p) for p in sample], out=offsets[1:])
     pts = np.concatenate(sample)
