@@ -6,7 +6,7 @@ import torch
 from psimap import PsimapError
 from psimap.render.output import RenderOutput
 
-BACKENDS = ("reference", "native", "auto")
+BACKENDS = ("reference", "native", "cuda", "auto")
 TILE_MODES = ("precise", "circle")
 
 
@@ -36,6 +36,13 @@ def native_available() -> bool:
     return True
 
 
+def _cuda_covers(dtype: torch.dtype, channels: int, topk: int | None) -> bool:
+    """Whether backend="auto" renders with the CUDA kernel: it covers the inputs and builds here."""
+    from psimap.render import cuda
+
+    return cuda.supported(dtype, channels, topk) and cuda.available()
+
+
 def project(means, quats, scales, opacities, viewmat, K, width: int, height: int, near: float = 0.2,
             far: float = 1000.0):
     """Stage 1 (psimap.render.project.Projected): the native projection where it is built, the
@@ -60,8 +67,10 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
     colors [N, 3], viewmat [4, 4] world-to-camera (OpenCV), K [3, 3], features [N, C] or None.
     topk: features blend only the K largest-weight surfels per pixel (None = all).
     tiles: "precise" (tight AABB) or "circle" (bounding circle, the baseline).
-    backend: "reference" (torch), "native" (C++), "auto" (native on CPU when built, else torch).
-    Non-finite inputs or wrong shapes raise ValueError. Everything is differentiable.
+    backend: "reference" (torch), "native" (C++), "cuda" (the CUDA kernel, forward only: no input may
+    need a gradient), "auto" (native on CPU when built; on a CUDA device the CUDA kernel when nothing
+    needs a gradient and it covers the inputs, else torch).
+    Non-finite inputs or wrong shapes raise ValueError. Everything but backend="cuda" is differentiable.
     """
     if not isinstance(means, torch.Tensor):
         raise ValueError(f"rasterize: means must be a torch.Tensor, got {type(means).__name__}")
@@ -98,6 +107,37 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
         raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
 
     from psimap.render.project import project_surfels
+
+    if backend == "cuda" or (backend == "auto" and device.type == "cuda"):
+        n_ch = 0 if features is None else int(features.shape[1])
+        needs_grad = torch.is_grad_enabled() and any(
+            t is not None and t.requires_grad for t in (means, quats, scales, opacities, colors, viewmat, K,
+                                                        features, background))
+        if backend == "cuda":
+            from psimap.render import cuda
+
+            if device.type != "cuda":
+                raise ValueError(f"rasterize: backend='cuda' needs the tensors on a CUDA device, got {device}")
+            if needs_grad:
+                raise ValueError("rasterize: backend='cuda' renders without gradients (forward only); "
+                                 "use backend='reference' or 'auto', or render under torch.no_grad()")
+            if not cuda.supported(dtype, n_ch, topk):
+                raise ValueError(f"rasterize: backend='cuda' takes float32 with C <= {cuda.MAX_CHANNELS_ALL} "
+                                 f"channels blending all or topk <= {cuda.MAX_TOPK}; got {dtype}, C = {n_ch}, "
+                                 f"topk = {topk}")
+            try:
+                cuda.load_extension()
+            except RuntimeError as exc:
+                raise PsimapError(f"{exc}; use backend='reference'") from exc
+            use_cuda = True
+        else:
+            use_cuda = not needs_grad and _cuda_covers(dtype, n_ch, topk)
+        if use_cuda:
+            from psimap.render.cuda import rasterize_cuda
+
+            proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
+            return rasterize_cuda(proj, opacities, colors, features, width, height, topk, tiles, near, far,
+                                  background)
 
     use_native = backend == "native" or (backend == "auto" and device.type == "cpu" and native_available())
     if use_native:

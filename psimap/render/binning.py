@@ -59,10 +59,13 @@ def bin_surfels(box: torch.Tensor, depth_key: torch.Tensor, width: int, height: 
     tx = torch.repeat_interleave(tx0, per) + rank % nx_r
     ty = torch.repeat_interleave(ty0, per) + rank // nx_r
     tile_id = ty * tiles_x + tx
-    # Lexicographic sort (tile, depth, index): stable sorts from the least significant key.
-    # `surf` is already ascending, so a stable depth sort keeps index order among equal depths.
-    order = torch.sort(depth_key.detach()[surf], stable=True).indices
-    order = order[torch.sort(tile_id[order], stable=True).indices]
+    # Lexicographic order (tile, depth, index) as one sort of unique int64 keys tile * N + rank,
+    # rank = the surfel's place in a stable depth sort (ties by index): one sort of N depths and
+    # one of the pairs, instead of two stable sorts of the pairs with a gather between them.
+    n = depth_key.shape[0]
+    rank = torch.empty(n, dtype=torch.long, device=device)
+    rank[torch.sort(depth_key.detach(), stable=True).indices] = torch.arange(n, device=device)
+    order = torch.sort(tile_id * n + rank[surf]).indices
     surf, tile_id = surf[order], tile_id[order]
     counts = torch.bincount(tile_id, minlength=tiles_x * tiles_y)
     offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=device)

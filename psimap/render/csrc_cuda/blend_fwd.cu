@@ -1,0 +1,238 @@
+// Stage 3 of psimap/render/SPEC.md, forward only, on a CUDA device: one thread block per 16x16
+// tile, one thread per pixel, walking the tile's surfel list front to back in batches that the
+// block stages in shared memory (every thread of a warp reads the same surfel: a broadcast).
+//
+// The torch reference (psimap/render/reference.py: blend_tiles) is the oracle; the per-pixel math
+// follows it step for step (the homogeneous ray-splat hit as p = x a + y b + c with the cross
+// products of T's rows, the squared edge-on test, the low-pass fallback, the alpha rules, the
+// one-pass distortion), in float32 like the reference on float32 inputs.
+//
+// Features: with topk = 0 every blended surfel's C channels are added in registers (the paper's
+// baseline, templated on a channel capacity); with topk = K each pixel keeps its K largest
+// weights (ties: the earlier surfel stays) in registers and gathers K feature rows at the end
+// (the paper's Top-K hard selection), so the walk touches no feature.
+#include <cuda_runtime.h>
+
+#include <cstdint>
+
+#include "blend.h"
+
+namespace psimap_cuda {
+namespace {
+
+constexpr int kTile = 16;
+constexpr int kThreads = kTile * kTile;
+constexpr float kAlphaMax = 0.99f;
+constexpr float kAlphaMin = 1.0f / 255.0f;
+constexpr float kTStop = 1e-4f;
+constexpr float kEdgeOnEps2 = 1e-20f;       // EDGE_ON_EPS ** 2
+constexpr float kHitBound = 1e10f;          // 1 / EDGE_ON_EPS
+constexpr float kChi2 = 9.0f;               // CHI ** 2
+constexpr float kLowpassRho2Max = 5.541263545158426f;   // ln 255
+
+// One staged surfel: a, b, c (p = x a + y b + c), T's last row, the edge-on coefficients
+// |x T2 - T0|^2 = x^2 t22 + x hx1 + hx0 (and y's), the centre, depth key, opacity.
+constexpr int kStaged = 20;
+
+template <int CB, int KMAX>
+__global__ void __launch_bounds__(kThreads)
+blend_forward_kernel(const BlendForwardArgs args, float far_minus_near) {
+  __shared__ float s_surf[kThreads][kStaged];
+  __shared__ int s_id[kThreads];
+
+  const int tile = blockIdx.y * args.tiles_x + blockIdx.x;
+  const int tid = threadIdx.y * kTile + threadIdx.x;
+  const int px = blockIdx.x * kTile + threadIdx.x;
+  const int py = blockIdx.y * kTile + threadIdx.y;
+  const bool inside = px < args.width && py < args.height;
+  const float x = static_cast<float>(px);
+  const float y = static_cast<float>(py);
+  const int C = args.channels;
+  const int K = args.topk;
+
+  const int start = args.offsets[tile];
+  const int count = args.offsets[tile + 1] - start;
+
+  float trans = 1.0f;
+  float rgb0 = 0.f, rgb1 = 0.f, rgb2 = 0.f, n0 = 0.f, n1 = 0.f, n2 = 0.f;
+  float depth_num = 0.f, median = 0.f, dist = 0.f, acc_w = 0.f, acc_wm = 0.f, acc_wm2 = 0.f;
+  float feat[CB > 0 ? CB : 1];
+#pragma unroll
+  for (int c = 0; c < (CB > 0 ? CB : 1); ++c) feat[c] = 0.f;
+  float top_w[KMAX > 0 ? KMAX : 1];
+  int top_id[KMAX > 0 ? KMAX : 1];
+#pragma unroll
+  for (int j = 0; j < (KMAX > 0 ? KMAX : 1); ++j) { top_w[j] = -1.f; top_id[j] = -1; }
+  float threshold = -1.f;   // the K-th largest weight so far (-1 while fewer than K)
+  unsigned int evaluated = 0;
+  bool done = !inside;
+
+  for (int b0 = 0; b0 < count; b0 += kThreads) {
+    // Every thread has finished reading the last batch before it is overwritten; stop the
+    // tile when every pixel has stopped.
+    if (__syncthreads_count(done) == kThreads) break;
+    const int k = b0 + tid;
+    if (k < count) {
+      const int id = args.surfel_ids[start + k];
+      const float* t = args.T + 9 * static_cast<int64_t>(id);
+      const float t00 = t[0], t01 = t[1], t02 = t[2], t10 = t[3], t11 = t[4], t12 = t[5];
+      const float t20 = t[6], t21 = t[7], t22 = t[8];
+      float* s = s_surf[tid];
+      // a = T1 x T2, b = T2 x T0, c = T0 x T1
+      s[0] = t11 * t22 - t12 * t21;  s[1] = t12 * t20 - t10 * t22;  s[2] = t10 * t21 - t11 * t20;
+      s[3] = t21 * t02 - t22 * t01;  s[4] = t22 * t00 - t20 * t02;  s[5] = t20 * t01 - t21 * t00;
+      s[6] = t01 * t12 - t02 * t11;  s[7] = t02 * t10 - t00 * t12;  s[8] = t00 * t11 - t01 * t10;
+      s[9] = t20;  s[10] = t21;  s[11] = t22;
+      s[12] = t20 * t20 + t21 * t21 + t22 * t22;
+      s[13] = -2.f * (t00 * t20 + t01 * t21 + t02 * t22);
+      s[14] = t00 * t00 + t01 * t01 + t02 * t02;
+      s[15] = -2.f * (t10 * t20 + t11 * t21 + t12 * t22);
+      s[16] = t10 * t10 + t11 * t11 + t12 * t12;
+      s[17] = args.center[2 * static_cast<int64_t>(id)];
+      s[18] = args.center[2 * static_cast<int64_t>(id) + 1];
+      s[19] = args.opacities[id];
+      s_id[tid] = id;
+    }
+    __syncthreads();
+    const int batch = min(kThreads, count - b0);
+    for (int j = 0; !done && j < batch; ++j) {
+      const float* s = s_surf[j];
+      ++evaluated;
+      const float p0 = x * s[0] + y * s[3] + s[6];
+      const float p1 = x * s[1] + y * s[4] + s[7];
+      const float p2 = x * s[2] + y * s[5] + s[8];
+      const float hx2 = fmaxf(x * x * s[12] + x * s[13] + s[14], 0.f);
+      const float hy2 = fmaxf(y * y * s[12] + y * s[15] + s[16], 0.f);
+      const bool hit = p2 * p2 > kEdgeOnEps2 * hx2 * hy2;
+      float u = 0.f, v = 0.f;
+      if (hit) {
+        u = fminf(fmaxf(p0 / p2, -kHitBound), kHitBound);
+        v = fminf(fmaxf(p1 / p2, -kHitBound), kHitBound);
+      }
+      const float rho3 = u * u + v * v;
+      const float z3 = s[9] * u + s[10] * v + s[11];
+      const bool valid3 = hit && rho3 <= kChi2 && z3 > args.near_plane;
+      const float g3 = valid3 ? expf(-0.5f * rho3) : 0.f;
+      const float dx = x - s[17], dy = y - s[18];
+      const float rho2 = dx * dx + dy * dy;
+      const float g2 = rho2 <= kLowpassRho2Max ? expf(-rho2) : 0.f;
+      const bool use3 = valid3 && g3 >= g2;
+      const float g = use3 ? g3 : g2;
+      const float alpha = fminf(kAlphaMax, s[19] * g);
+      if (alpha < kAlphaMin) continue;
+      const float next = trans * (1.f - alpha);
+      if (next < kTStop) { done = true; break; }
+      const int id = s_id[j];
+      const float d = use3 ? z3 : args.depth_key[id];
+      const float w = alpha * trans;
+      const float* col = args.colors + 3 * static_cast<int64_t>(id);
+      rgb0 += w * col[0]; rgb1 += w * col[1]; rgb2 += w * col[2];
+      const float* nc = args.normal_c + 3 * static_cast<int64_t>(id);
+      n0 += w * nc[0]; n1 += w * nc[1]; n2 += w * nc[2];
+      depth_num += w * d;
+      if (trans > 0.5f) median = d;
+      const float m = args.far_plane * (d - args.near_plane) / (far_minus_near * d);
+      dist += w * (m * m * acc_w + acc_wm2 - 2.f * m * acc_wm);
+      acc_w += w; acc_wm += w * m; acc_wm2 += w * m * m;
+      if constexpr (CB > 0) {
+        const float* f = args.features + static_cast<int64_t>(C) * id;
+#pragma unroll
+        for (int c = 0; c < CB; ++c)
+          if (c < C) feat[c] += w * f[c];
+      }
+      if constexpr (KMAX > 0) {
+        if (w > threshold) {
+          // Insert into the descending list: a strictly larger weight moves ahead, so among
+          // equal weights the earlier surfel stays first; the K-th slot's old entry drops out.
+          float cw = w;
+          int ci = id;
+#pragma unroll
+          for (int q = 0; q < KMAX; ++q) {
+            if (q >= K) break;
+            if (cw > top_w[q]) {
+              const float tw = top_w[q]; const int ti = top_id[q];
+              top_w[q] = cw; top_id[q] = ci; cw = tw; ci = ti;
+            }
+          }
+#pragma unroll
+          for (int q = 0; q < KMAX; ++q)
+            if (q == K - 1) threshold = top_w[q];
+        }
+      }
+      trans = next;
+    }
+  }
+
+  // Warp sums of the evaluation counts, one atomic per warp.
+  unsigned long long ev = evaluated;
+#pragma unroll
+  for (int off = 16; off > 0; off >>= 1) ev += __shfl_down_sync(0xffffffffu, ev, off);
+  if ((tid & 31) == 0 && ev) atomicAdd(args.evaluated, ev);
+
+  if (!inside) return;
+  const int64_t pix = static_cast<int64_t>(py) * args.width + px;
+  const float a = 1.f - trans;
+  args.rgb[3 * pix] = rgb0 + trans * args.bg_r;
+  args.rgb[3 * pix + 1] = rgb1 + trans * args.bg_g;
+  args.rgb[3 * pix + 2] = rgb2 + trans * args.bg_b;
+  args.alpha[pix] = a;
+  args.depth[pix] = a > 1e-6f ? depth_num / a : 0.f;
+  args.median[pix] = median;
+  args.normal[3 * pix] = n0; args.normal[3 * pix + 1] = n1; args.normal[3 * pix + 2] = n2;
+  args.distortion[pix] = dist;
+  float* out = args.out_features + static_cast<int64_t>(C) * pix;
+  if constexpr (CB > 0) {
+#pragma unroll
+    for (int c = 0; c < CB; ++c)
+      if (c < C) out[c] = feat[c];
+  } else if constexpr (KMAX > 0) {
+    for (int c = 0; c < C; ++c) {
+      float sum = 0.f;
+#pragma unroll
+      for (int q = 0; q < KMAX; ++q) {
+        if (q >= K) break;
+        if (top_id[q] >= 0) sum += top_w[q] * args.features[static_cast<int64_t>(C) * top_id[q] + c];
+      }
+      out[c] = sum;
+    }
+  }
+}
+
+template <int CB, int KMAX>
+const char* launch(const BlendForwardArgs& args, cudaStream_t stream) {
+  const dim3 grid(args.tiles_x, args.tiles_y);
+  const dim3 block(kTile, kTile);
+  const float far_minus_near = static_cast<float>(static_cast<double>(args.far_plane) - args.near_plane);
+  blend_forward_kernel<CB, KMAX><<<grid, block, 0, stream>>>(args, far_minus_near);
+  const cudaError_t err = cudaGetLastError();
+  return err == cudaSuccess ? nullptr : cudaGetErrorString(err);
+}
+
+}  // namespace
+
+bool blend_forward_supported(int channels, int topk) {
+  if (channels < 0 || topk < 0) return false;
+  if (channels == 0) return true;
+  return topk > 0 ? topk <= kMaxTopK : channels <= kMaxChannelsAll;
+}
+
+const char* launch_blend_forward(const BlendForwardArgs& args, void* stream_ptr) {
+  const cudaStream_t stream = static_cast<cudaStream_t>(stream_ptr);
+  if (args.tiles_x <= 0 || args.tiles_y <= 0) return nullptr;
+  const int C = args.channels, K = args.topk;
+  if (!blend_forward_supported(C, K)) return "feature width / topk beyond the CUDA kernel's registers";
+  if (C == 0) return launch<0, 0>(args, stream);
+  if (K > 0) {
+    if (K <= 4) return launch<0, 4>(args, stream);
+    if (K <= 8) return launch<0, 8>(args, stream);
+    if (K <= 16) return launch<0, 16>(args, stream);
+    return launch<0, 32>(args, stream);
+  }
+  if (C <= 4) return launch<4, 0>(args, stream);
+  if (C <= 8) return launch<8, 0>(args, stream);
+  if (C <= 16) return launch<16, 0>(args, stream);
+  if (C <= 32) return launch<32, 0>(args, stream);
+  return launch<64, 0>(args, stream);
+}
+
+}  // namespace psimap_cuda

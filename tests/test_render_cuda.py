@@ -1,0 +1,189 @@
+"""The CUDA forward renderer (psimap/render/cuda.py, psimap/render/csrc_cuda) against the torch
+reference, and the dispatch around it.
+
+Oracle and tolerances as tests/test_render_native.py's (its docstring): the reference in float64 on
+float32-representable inputs, 1e-5 relative per output element, pixels within BAND of a discrete
+cutoff excluded; against the float64 oracle an element may also be off by 2x the float32
+reference's own error, the float32 reference run on the same CUDA device (so its stage 1 is the
+very projection the kernel reads). The kernel's products may fuse into FMAs, so the geometric
+cutoffs (rho3 ~ chi^2, rho2 ~ R_LP^2, z3 ~ near, edge-on) are banded too.
+
+The tests that need a CUDA device skip without one (CI has none); the dispatch tests run anywhere.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from posed import random_c2w, to_world, viewmat as viewmat_of
+from render_cases import (FAR, H, NEAR, OUTPUTS, W, assert_forward_close, boundary_pixels, camera, fresh_seed,
+                          hard_scene, random_scene)
+from psimap import PsimapError
+from psimap.render import cuda, rasterize
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+
+def poison_cuda_cache(width, height, channels):
+    """Hand blocks of the outputs' sizes full of NaN back to torch's CUDA caching allocator, so the
+    kernel's outputs (torch.empty) likely come out of NaN memory: a pixel left unwritten fails."""
+    sizes = [3, 1, 1, 1, 3, 1, channels]
+    junk = [torch.full((width * height * c,), float("nan"), device="cuda") for c in sizes if c]
+    del junk
+
+
+def render(scene, viewmat, K, topk, backend, dtype, device, tiles="precise", background=None, width=W,
+           height=H):
+    t = [x.to(device=device, dtype=dtype) for x in scene]
+    bg = None if background is None else background.to(device=device, dtype=dtype)
+    if backend == "cuda":
+        poison_cuda_cache(width, height, t[5].shape[1])
+    with torch.no_grad():
+        return rasterize(*t[:5], viewmat.to(device=device, dtype=dtype), K.to(device=device, dtype=dtype),
+                         width, height, features=t[5], topk=topk, tiles=tiles, backend=backend, near=NEAR,
+                         far=FAR, background=bg)
+
+
+def compare(scene, viewmat, K, topk, tiles="precise", background=None, msg=""):
+    """float64 reference (CPU), float32 reference (CUDA) and the kernel; asserts the kernel's
+    forward within tolerance off the band and equal stats. Returns (ref64, kernel, band)."""
+    band = boundary_pixels(scene, viewmat, K, topk)
+    ref = render(scene, viewmat, K, topk, "reference", torch.float64, "cpu", tiles, background)
+    ref32 = render(scene, viewmat, K, topk, "reference", torch.float32, "cuda", tiles, background)
+    out = render(scene, viewmat, K, topk, "cuda", torch.float32, "cuda", tiles, background)
+    assert out.stats["backend"] == "cuda"
+    msg = f"{msg}, banded pixels={int(band.sum())}"
+    assert_forward_close(ref, _to_cpu(out), ~band, msg, _to_cpu(ref32))
+    for k in ("tile_pairs", "pairs_per_tile", "max_pairs_per_tile", "culled"):
+        assert out.stats[k] == ref.stats[k], (k, msg)
+    # The kernel counts the evaluations it performs (pixels stop early), the reference every pair.
+    assert out.stats["evaluated"] <= ref.stats["evaluated"], msg
+    return ref, out, band
+
+
+def _to_cpu(out):
+    return type(out)(**{k: getattr(out, k).cpu() for k in OUTPUTS}, stats=out.stats)
+
+
+# ---------------------------------------------------------------- anywhere
+
+def test_supported_covers_float32_within_the_kernels_registers():
+    assert cuda.supported(torch.float32, 32, None) and cuda.supported(torch.float32, 64, None)
+    assert not cuda.supported(torch.float32, 65, None)            # blending all: C in registers
+    assert cuda.supported(torch.float32, 500, 8) and cuda.supported(torch.float32, 500, 32)
+    assert not cuda.supported(torch.float32, 5, 33)
+    assert cuda.supported(torch.float32, 0, 100)                  # no features: no list kept
+    assert not cuda.supported(torch.float64, 3, None)
+
+
+def test_cuda_backend_refuses_cpu_tensors():
+    viewmat, K = camera()
+    scene = [t.float() for t in random_scene(10, 1)]
+    with pytest.raises(ValueError, match="CUDA device"):
+        rasterize(*scene[:5], viewmat.float(), K.float(), W, H, features=scene[5], backend="cuda")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device is present")
+def test_without_a_device_auto_stays_on_the_cpu_and_the_reason_is_kept():
+    assert not cuda.available()
+    with pytest.raises(RuntimeError, match="no CUDA device"):
+        cuda.load_extension()
+    viewmat, K = camera()
+    scene = [t.float() for t in random_scene(10, 1)]
+    with torch.no_grad():
+        out = rasterize(*scene[:5], viewmat.float(), K.float(), W, H, features=scene[5], backend="auto")
+    assert out.stats["backend"] in ("native", "reference")
+
+
+# ---------------------------------------------------------------- on a CUDA device
+
+@needs_cuda
+@pytest.mark.parametrize("topk,tiles,channels", [(None, "precise", 6), (3, "precise", 6), (2, "circle", 6),
+                                                 (None, "circle", 40), (8, "precise", 32), (None, "precise", 0),
+                                                 (20, "precise", 70)])
+def test_cuda_matches_reference_on_random_scene(topk, tiles, channels):
+    seed = fresh_seed()
+    _, K = camera()
+    scene = random_scene(150, seed, channels=channels)
+    c2w = random_c2w(seed)
+    scene[0], scene[1] = (t.float().double() for t in to_world(c2w, scene[0], scene[1]))
+    viewmat = viewmat_of(c2w).float().double()
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    ref, out, band = compare(scene, viewmat, K, topk, tiles, bg, f"seed={seed}, topk={topk}, tiles={tiles}, "
+                                                                f"C={channels}")
+    assert int(band.sum()) < 0.05 * H * W
+    assert float(ref.alpha.max()) > 0.999                           # the 1e-4 stop is exercised
+    assert 0 < out.stats["evaluated"]
+
+
+@needs_cuda
+@pytest.mark.parametrize("name", ["edge_on", "tiny_scale", "huge_scale", "opacity_0_and_1", "coincident",
+                                  "near_plane", "all_culled", "empty"])
+def test_cuda_hard_cases_match_reference(name):
+    viewmat, K = camera()
+    ref, out, band = compare(hard_scene(name), viewmat, K, 2, msg=f"case={name}")
+    if name not in ("edge_on", "all_culled", "empty"):
+        assert float(ref.alpha[~band].max()) > 0.3, name            # the comparison covers visible pixels
+    for k in OUTPUTS:
+        assert bool(torch.isfinite(getattr(out, k)).all()), (name, k)
+
+
+@needs_cuda
+def test_long_tile_lists_run_in_batches_and_pixels_stop_early():
+    """More than two shared-memory batches per tile (256 surfels each), opaque enough that most
+    pixels stop before the end of their list: the block's early exit and the batch reloads."""
+    viewmat, K = camera()
+    seed = fresh_seed()
+    scene = random_scene(1500, seed, size=(0.3, 0.4), opac=(0.3, 0.9))
+    ref, out, _ = compare(scene, viewmat, K, 4, msg=f"seed={seed}")
+    assert out.stats["max_pairs_per_tile"] > 600
+    assert out.stats["evaluated"] < 0.5 * ref.stats["evaluated"]
+
+
+@needs_cuda
+def test_partial_edge_tiles_are_a_crop_of_a_larger_render():
+    """An image whose sides are not multiples of 16 (threads outside it write nothing) renders the
+    crop of the same camera's larger image."""
+    viewmat, K = camera()
+    scene = random_scene(150, fresh_seed())
+    full = render(scene, viewmat, K, 3, "cuda", torch.float32, "cuda")
+    crop = render(scene, viewmat, K, 3, "cuda", torch.float32, "cuda", width=W - 11, height=H - 5)
+    for k in OUTPUTS:
+        a, b = getattr(full, k)[: H - 5, : W - 11], getattr(crop, k)
+        # Another tile grid bins the same surfels; the per-pixel walk is the same, so equal.
+        assert torch.equal(a, b), k
+
+
+@needs_cuda
+def test_auto_picks_the_kernel_only_without_gradients():
+    viewmat, K = camera()
+    scene = [t.float().cuda() for t in random_scene(40, 2)]
+    vm, Kc = viewmat.float().cuda(), K.float().cuda()
+    with torch.no_grad():
+        assert rasterize(*scene[:5], vm, Kc, W, H, features=scene[5], backend="auto").stats["backend"] == "cuda"
+        wide = torch.randn(40, 70, device="cuda")
+        assert rasterize(*scene[:5], vm, Kc, W, H, features=wide, backend="auto").stats["backend"] == "reference"
+        with pytest.raises(ValueError, match="C <= 64"):
+            rasterize(*scene[:5], vm, Kc, W, H, features=wide, backend="cuda")
+        s64 = [t.double() for t in scene]
+        assert rasterize(*s64[:5], vm.double(), Kc.double(), W, H, backend="auto").stats["backend"] == "reference"
+    leaves = [t.clone().requires_grad_(True) for t in scene]
+    out = rasterize(*leaves[:5], vm, Kc, W, H, features=leaves[5], backend="auto")
+    assert out.stats["backend"] == "reference"
+    out.features.sum().backward()
+    assert float(leaves[0].grad.abs().max()) > 0
+    with pytest.raises(ValueError, match="without gradients"):
+        rasterize(*leaves[:5], vm, Kc, W, H, features=leaves[5], backend="cuda")
+
+
+@needs_cuda
+def test_a_build_failure_is_one_clear_error(monkeypatch):
+    monkeypatch.setattr(cuda, "_extension", None)
+    monkeypatch.setattr(cuda, "_load_error", "the CUDA renderer could not be built: OSError: no nvcc")
+    viewmat, K = camera()
+    scene = [t.float().cuda() for t in random_scene(10, 1)]
+    with torch.no_grad():
+        with pytest.raises(PsimapError, match="could not be built.*backend='reference'"):
+            rasterize(*scene[:5], viewmat.float().cuda(), K.float().cuda(), W, H, backend="cuda")
+        out = rasterize(*scene[:5], viewmat.float().cuda(), K.float().cuda(), W, H, backend="auto")
+    assert out.stats["backend"] == "reference"
