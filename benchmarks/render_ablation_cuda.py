@@ -69,7 +69,8 @@ def ablation(n_surfels: int, W: int, H: int, C: int, topk: int, repeats: int, wi
             box = proj.box_precise if tiles == "precise" else proj.box_circle
             bins = bin_surfels(box, proj.depth_key, W, H)
             offsets, ids = bins.offsets.to(torch.int32), bins.surfel_ids.to(torch.int32)
-            kernel = cuda_ms(lambda: ext.blend_forward(offsets, ids, bins.tiles_x, bins.tiles_y, W, H, *f32,
+            box32 = box.to(torch.int32).contiguous()
+            kernel = cuda_ms(lambda: ext.blend_forward(offsets, ids, box32, bins.tiles_x, bins.tiles_y, W, H, *f32,
                                                        k or 0, 0.2, 1000.0, [0.0, 0.0, 0.0]), repeats)
             binning = cuda_ms(lambda: bin_surfels(box, proj.depth_key, W, H), repeats)
             stages = cuda_ms(lambda: cuda.rasterize_cuda(proj, opac, colors, feats, W, H, k, tiles), repeats)

@@ -44,20 +44,28 @@ def render(scene, viewmat, K, topk, backend, dtype, device, tiles="precise", bac
                          far=FAR, background=bg)
 
 
-def compare(scene, viewmat, K, topk, tiles="precise", background=None, msg=""):
-    """float64 reference (CPU), float32 reference (CUDA) and the kernel; asserts the kernel's
-    forward within tolerance off the band and equal stats. Returns (ref64, kernel, band)."""
+def compare(scene, viewmat, K, topk, tiles="precise", background=None, msg="", oracle=torch.float64):
+    """The kernel against the reference: `oracle` float64 (on the CPU, with the float32 reference on the
+    CUDA device as the allowance) or float32 (the reference on the CUDA device itself: for degenerate
+    surfels, whose stage-1 quantities depend on the projection's precision). Asserts the forward
+    within tolerance off the band and the stats of the float32 reference (same projection, same
+    bins). Returns (oracle render, kernel render, band)."""
     band = boundary_pixels(scene, viewmat, K, topk)
-    ref = render(scene, viewmat, K, topk, "reference", torch.float64, "cpu", tiles, background)
     ref32 = render(scene, viewmat, K, topk, "reference", torch.float32, "cuda", tiles, background)
     out = render(scene, viewmat, K, topk, "cuda", torch.float32, "cuda", tiles, background)
     assert out.stats["backend"] == "cuda"
     msg = f"{msg}, banded pixels={int(band.sum())}"
-    assert_forward_close(ref, _to_cpu(out), ~band, msg, _to_cpu(ref32))
+    if oracle == torch.float64:
+        ref = render(scene, viewmat, K, topk, "reference", torch.float64, "cpu", tiles, background)
+        assert_forward_close(ref, _to_cpu(out), ~band, msg, _to_cpu(ref32))
+    else:
+        ref = _to_cpu(ref32)
+        assert_forward_close(ref, _to_cpu(out), ~band, msg)
     for k in ("tile_pairs", "pairs_per_tile", "max_pairs_per_tile", "culled"):
-        assert out.stats[k] == ref.stats[k], (k, msg)
-    # The kernel counts the evaluations it performs (pixels stop early), the reference every pair.
-    assert out.stats["evaluated"] <= ref.stats["evaluated"], msg
+        assert out.stats[k] == ref32.stats[k], (k, msg)
+    # The kernel counts the evaluations it performs (pixels stop early, warps skip surfels whose box
+    # misses their 8x4 block), the reference every (pixel, pair).
+    assert out.stats["evaluated"] <= ref32.stats["evaluated"], msg
     return ref, out, band
 
 
@@ -121,9 +129,11 @@ def test_cuda_matches_reference_on_random_scene(topk, tiles, channels):
                                   "near_plane", "all_culled", "empty"])
 def test_cuda_hard_cases_match_reference(name):
     viewmat, K = camera()
-    ref, out, band = compare(hard_scene(name), viewmat, K, 2, msg=f"case={name}")
-    if name not in ("edge_on", "all_culled", "empty"):
-        assert float(ref.alpha[~band].max()) > 0.3, name            # the comparison covers visible pixels
+    ref, out, band = compare(hard_scene(name), viewmat, K, 2, msg=f"case={name}", oracle=torch.float32)
+    if name in ("huge_scale", "opacity_0_and_1", "coincident"):
+        # The others' visible pixels all sit in the band (edge-on, 1e-8 scales, surfels on the near
+        # plane) or there are none (all culled, empty).
+        assert float(ref.alpha[~band].max()) > 0.3, name               # the comparison covers visible pixels
     for k in OUTPUTS:
         assert bool(torch.isfinite(getattr(out, k)).all()), (name, k)
 
@@ -138,6 +148,7 @@ def test_long_tile_lists_run_in_batches_and_pixels_stop_early():
     ref, out, _ = compare(scene, viewmat, K, 4, msg=f"seed={seed}")
     assert out.stats["max_pairs_per_tile"] > 600
     assert out.stats["evaluated"] < 0.5 * ref.stats["evaluated"]
+    assert float(ref.alpha.min()) > 0.99                             # every pixel is covered, most stop early
 
 
 @needs_cuda

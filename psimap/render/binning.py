@@ -38,36 +38,32 @@ def bin_surfels(box: torch.Tensor, depth_key: torch.Tensor, width: int, height: 
     device = box.device
     tiles_x = (width + tile - 1) // tile
     tiles_y = (height + tile - 1) // tile
-    box = box.long()
-    nonempty = (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
-    ids = torch.nonzero(nonempty).squeeze(1)
-    b = box[ids]
+    n = box.shape[0]
+    b = box.long()
+    # Per surfel its tile range (an empty box touches none). Written without boolean indexing and
+    # with known output sizes, so on a GPU the only host sync is reading the number of pairs.
     tx0, ty0 = b[:, 0] // tile, b[:, 1] // tile
-    tx1, ty1 = (b[:, 2] - 1) // tile, (b[:, 3] - 1) // tile     # inclusive
-    nx, ny = tx1 - tx0 + 1, ty1 - ty0 + 1
+    nx = torch.where(b[:, 2] > b[:, 0], (b[:, 2] - 1) // tile - tx0 + 1, 0)
+    ny = torch.where(b[:, 3] > b[:, 1], (b[:, 3] - 1) // tile - ty0 + 1, 0)
     per = nx * ny
-    total = int(per.sum()) if ids.numel() else 0
+    end = torch.cumsum(per, 0)
+    total = int(end[-1]) if n else 0
     if total == 0:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return Bins(empty, empty, torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=device),
                     tiles_x, tiles_y)
-    surf = torch.repeat_interleave(ids, per)
+    surf = torch.repeat_interleave(torch.arange(n, device=device), per, output_size=total)
     # Rank of each pair inside its surfel's box -> (dx, dy) offsets.
-    start = torch.cumsum(per, 0) - per
-    rank = torch.arange(total, device=device) - torch.repeat_interleave(start, per)
-    nx_r = torch.repeat_interleave(nx, per)
-    tx = torch.repeat_interleave(tx0, per) + rank % nx_r
-    ty = torch.repeat_interleave(ty0, per) + rank // nx_r
-    tile_id = ty * tiles_x + tx
+    rank = torch.arange(total, device=device) - (end - per)[surf]
+    nx_r = nx[surf]
+    tile_id = (ty0[surf] + rank // nx_r) * tiles_x + tx0[surf] + rank % nx_r
     # Lexicographic order (tile, depth, index) as one sort of unique int64 keys tile * N + rank,
     # rank = the surfel's place in a stable depth sort (ties by index): one sort of N depths and
     # one of the pairs, instead of two stable sorts of the pairs with a gather between them.
-    n = depth_key.shape[0]
-    rank = torch.empty(n, dtype=torch.long, device=device)
-    rank[torch.sort(depth_key.detach(), stable=True).indices] = torch.arange(n, device=device)
-    order = torch.sort(tile_id * n + rank[surf]).indices
+    depth_rank = torch.empty(n, dtype=torch.long, device=device)
+    depth_rank[torch.sort(depth_key.detach(), stable=True).indices] = torch.arange(n, device=device)
+    order = torch.sort(tile_id * n + depth_rank[surf]).indices
     surf, tile_id = surf[order], tile_id[order]
-    counts = torch.bincount(tile_id, minlength=tiles_x * tiles_y)
-    offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=device)
-    offsets[1:] = torch.cumsum(counts, 0)
+    # Tile t's pairs start at the first sorted tile id >= t.
+    offsets = torch.searchsorted(tile_id, torch.arange(tiles_x * tiles_y + 1, device=device))
     return Bins(surf, tile_id, offsets, tiles_x, tiles_y)

@@ -97,18 +97,22 @@ def rasterize_cuda(proj: Projected, opacities: torch.Tensor, colors: torch.Tenso
         f32 = [t.detach().float().contiguous() for t in (proj.T, proj.center, proj.depth_key, proj.normal_c,
                                                          opacities, colors, features)]
         bg = [0.0, 0.0, 0.0] if background is None else [float(v) for v in background.detach().cpu()]
+        box32 = box.to(torch.int32).contiguous()
         rgb, alpha, depth, median, normal, distortion, feats, evaluated = ext.blend_forward(
-            bins.offsets.to(torch.int32), bins.surfel_ids.to(torch.int32), bins.tiles_x, bins.tiles_y,
+            bins.offsets.to(torch.int32), bins.surfel_ids.to(torch.int32), box32, bins.tiles_x, bins.tiles_y,
             width, height, *f32, 0 if topk is None else int(topk), float(near), float(far), bg)
-    counts = bins.counts
+        # A non-empty box (clipped to the image) touches at least one tile: the rest are culled.
+        binned = ((box32[:, 2] > box32[:, 0]) & (box32[:, 3] > box32[:, 1])).sum()
+        longest = bins.counts.max() if bins.counts.numel() else binned.new_zeros(())
+        longest, binned, evaluated = torch.stack([longest, binned, evaluated[0]]).tolist()   # one host sync
     n_tiles = bins.tiles_x * bins.tiles_y
     n_pairs = int(bins.surfel_ids.numel())
     stats = {
         "tile_pairs": n_pairs,
         "pairs_per_tile": n_pairs / max(n_tiles, 1),
-        "max_pairs_per_tile": int(counts.max()) if n_tiles else 0,
-        "evaluated": int(evaluated.item()),
-        "culled": int(n - torch.unique(bins.surfel_ids).numel()),
+        "max_pairs_per_tile": longest,
+        "evaluated": evaluated,
+        "culled": n - binned,
         "backend": "cuda",
         "tiles": tiles,
     }

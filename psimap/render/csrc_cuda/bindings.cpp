@@ -30,7 +30,7 @@ void check_rows(const torch::Tensor& t, const char* name, int64_t n, std::vector
 // Returns rgb [H, W, 3], alpha [H, W], depth [H, W], median [H, W], normal [H, W, 3],
 // distortion [H, W], features [H, W, C], evaluated [1] int64.
 std::vector<torch::Tensor> blend_forward(torch::Tensor offsets, torch::Tensor surfel_ids,
-                                         int64_t tiles_x, int64_t tiles_y, int64_t width,
+                                         torch::Tensor boxes, int64_t tiles_x, int64_t tiles_y, int64_t width,
                                          int64_t height, torch::Tensor T, torch::Tensor center,
                                          torch::Tensor depth_key, torch::Tensor normal_c,
                                          torch::Tensor opacities, torch::Tensor colors,
@@ -42,6 +42,8 @@ std::vector<torch::Tensor> blend_forward(torch::Tensor offsets, torch::Tensor su
   const int64_t n = T.size(0);
   check_tensor(offsets, "offsets", torch::kInt32, device);
   check_tensor(surfel_ids, "surfel_ids", torch::kInt32, device);
+  check_tensor(boxes, "boxes", torch::kInt32, device);
+  check_rows(boxes, "boxes", n, {4});
   for (auto [t, name] : {std::pair{&T, "T"}, {&center, "center"}, {&depth_key, "depth_key"},
                          {&normal_c, "normal_c"}, {&opacities, "opacities"}, {&colors, "colors"},
                          {&features, "features"}})
@@ -76,6 +78,7 @@ std::vector<torch::Tensor> blend_forward(torch::Tensor offsets, torch::Tensor su
   psimap_cuda::BlendForwardArgs a{};
   a.offsets = offsets.data_ptr<int32_t>();
   a.surfel_ids = surfel_ids.data_ptr<int32_t>();
+  a.boxes = boxes.data_ptr<int32_t>();
   a.tiles_x = static_cast<int>(tiles_x);
   a.tiles_y = static_cast<int>(tiles_y);
   a.width = static_cast<int>(width);

@@ -11,6 +11,7 @@ struct BlendForwardArgs {
   // Tile lists (stage 2): tile t owns surfel_ids[offsets[t] : offsets[t + 1]], front to back.
   const int32_t* offsets;   // [tiles + 1]
   const int32_t* surfel_ids;  // [pairs]
+  const int32_t* boxes;     // [N, 4] the boxes the surfels were binned by (x0, y0, x1, y1), half-open
   int tiles_x, tiles_y, width, height;
   const float* T;           // [N, 3, 3] splat-to-pixel homography, row-major
   const float* center;      // [N, 2]

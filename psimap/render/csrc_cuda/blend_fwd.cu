@@ -1,16 +1,21 @@
 // Stage 3 of psimap/render/SPEC.md, forward only, on a CUDA device: one thread block per 16x16
-// tile, one thread per pixel, walking the tile's surfel list front to back in batches that the
-// block stages in shared memory (every thread of a warp reads the same surfel: a broadcast).
+// tile, one thread per pixel; each warp owns an 8x4 block of the tile and walks the tile's surfel
+// list front to back on its own, 32 surfels at a time: each lane stages one surfel in the warp's
+// slice of shared memory if the surfel's box (the one it was binned by: the tight box with precise
+// tiles, the circle's with the baseline) meets the warp's block, and the warp evaluates only those
+// (every lane reads the same staged surfel: a broadcast). A pixel outside a surfel's box has
+// alpha < 1/255, so the skip changes nothing; a warp stops when its 32 pixels have.
 //
 // The torch reference (psimap/render/reference.py: blend_tiles) is the oracle; the per-pixel math
 // follows it step for step (the homogeneous ray-splat hit as p = x a + y b + c with the cross
-// products of T's rows, the squared edge-on test, the low-pass fallback, the alpha rules, the
-// one-pass distortion), in float32 like the reference on float32 inputs.
+// products of T's rows, the squared edge-on test, the low-pass fallback, the alpha rules), in
+// float32 like the reference on float32 inputs; the one-pass distortion is a difference of O(1)
+// NDC-depth moments and is summed in double (float32 cancels to ~1e-7 absolute).
 //
 // Features: with topk = 0 every blended surfel's C channels are added in registers (the paper's
 // baseline, templated on a channel capacity); with topk = K each pixel keeps its K largest
-// weights (ties: the earlier surfel stays) in registers and gathers K feature rows at the end
-// (the paper's Top-K hard selection), so the walk touches no feature.
+// weights (ties: the earlier surfel stays) in registers and the warp gathers its pixels' K feature
+// rows at the end (the paper's Top-K hard selection), so the walk touches no feature.
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -22,6 +27,9 @@ namespace {
 
 constexpr int kTile = 16;
 constexpr int kThreads = kTile * kTile;
+constexpr int kWarps = kThreads / 32;
+constexpr int kBlockW = 8, kBlockH = 4;      // a warp's pixels; kTile / kBlockW = 2 blocks a row
+constexpr unsigned kFull = 0xffffffffu;
 constexpr float kAlphaMax = 0.99f;
 constexpr float kAlphaMin = 1.0f / 255.0f;
 constexpr float kTStop = 1e-4f;
@@ -31,72 +39,105 @@ constexpr float kChi2 = 9.0f;               // CHI ** 2
 constexpr float kLowpassRho2Max = 5.541263545158426f;   // ln 255
 
 // One staged surfel: a, b, c (p = x a + y b + c), T's last row, the edge-on coefficients
-// |x T2 - T0|^2 = x^2 t22 + x hx1 + hx0 (and y's), the centre, depth key, opacity.
+// |x T2 - T0|^2 = x^2 t22 + x hx1 + hx0 (and y's), the centre, opacity.
 constexpr int kStaged = 20;
+
+// Adds w * row[0:C] to acc (C <= CB), four channels a load when rows are 16-byte aligned.
+template <int CB>
+__device__ __forceinline__ void add_row(float (&acc)[CB], const float* row, int C, float w, bool vec4) {
+  if (vec4) {
+#pragma unroll
+    for (int c = 0; c < CB; c += 4) {
+      if (c < C) {
+        const float4 v = *reinterpret_cast<const float4*>(row + c);
+        acc[c] += w * v.x; acc[c + 1] += w * v.y; acc[c + 2] += w * v.z; acc[c + 3] += w * v.w;
+      }
+    }
+  } else {
+#pragma unroll
+    for (int c = 0; c < CB; ++c)
+      if (c < C) acc[c] += w * row[c];
+  }
+}
 
 template <int CB, int KMAX>
 __global__ void __launch_bounds__(kThreads)
 blend_forward_kernel(const BlendForwardArgs args, float far_minus_near) {
-  __shared__ float s_surf[kThreads][kStaged];
-  __shared__ int s_id[kThreads];
+  __shared__ float s_surf[kWarps][32][kStaged];
+  __shared__ int s_id[kWarps][32];
 
-  const int tile = blockIdx.y * args.tiles_x + blockIdx.x;
-  const int tid = threadIdx.y * kTile + threadIdx.x;
-  const int px = blockIdx.x * kTile + threadIdx.x;
-  const int py = blockIdx.y * kTile + threadIdx.y;
+  const int tile = blockIdx.x;
+  const int warp = threadIdx.x >> 5, lane = threadIdx.x & 31;
+  const int bx0 = (tile % args.tiles_x) * kTile + (warp & 1) * kBlockW;
+  const int by0 = (tile / args.tiles_x) * kTile + (warp >> 1) * kBlockH;
+  const int px = bx0 + (lane & (kBlockW - 1));
+  const int py = by0 + lane / kBlockW;
   const bool inside = px < args.width && py < args.height;
   const float x = static_cast<float>(px);
   const float y = static_cast<float>(py);
   const int C = args.channels;
   const int K = args.topk;
+  // Feature rows and output pixels are 16-byte aligned when C is a multiple of 4 (torch's
+  // allocations are 256-byte aligned).
+  const bool vec4 = (C & 3) == 0;
 
   const int start = args.offsets[tile];
   const int count = args.offsets[tile + 1] - start;
+  float (*stage)[kStaged] = s_surf[warp];
+  int* stage_id = s_id[warp];
 
   float trans = 1.0f;
   float rgb0 = 0.f, rgb1 = 0.f, rgb2 = 0.f, n0 = 0.f, n1 = 0.f, n2 = 0.f;
-  float depth_num = 0.f, median = 0.f, dist = 0.f, acc_w = 0.f, acc_wm = 0.f, acc_wm2 = 0.f;
-  float feat[CB > 0 ? CB : 1];
+  float depth_num = 0.f, median = 0.f;
+  double dist = 0.0, acc_w = 0.0, acc_wm = 0.0, acc_wm2 = 0.0;
+  constexpr int kAcc = CB > 0 ? CB : 1;
+  float feat[kAcc];
 #pragma unroll
-  for (int c = 0; c < (CB > 0 ? CB : 1); ++c) feat[c] = 0.f;
-  float top_w[KMAX > 0 ? KMAX : 1];
-  int top_id[KMAX > 0 ? KMAX : 1];
+  for (int c = 0; c < kAcc; ++c) feat[c] = 0.f;
+  constexpr int kTop = KMAX > 0 ? KMAX : 1;
+  float top_w[kTop];
+  int top_id[kTop];
 #pragma unroll
-  for (int j = 0; j < (KMAX > 0 ? KMAX : 1); ++j) { top_w[j] = -1.f; top_id[j] = -1; }
+  for (int j = 0; j < kTop; ++j) { top_w[j] = -1.f; top_id[j] = -1; }
   float threshold = -1.f;   // the K-th largest weight so far (-1 while fewer than K)
   unsigned int evaluated = 0;
   bool done = !inside;
 
-  for (int b0 = 0; b0 < count; b0 += kThreads) {
-    // Every thread has finished reading the last batch before it is overwritten; stop the
-    // tile when every pixel has stopped.
-    if (__syncthreads_count(done) == kThreads) break;
-    const int k = b0 + tid;
+  for (int b0 = 0; b0 < count; b0 += 32) {
+    if (__all_sync(kFull, done)) break;
+    const int k = b0 + lane;
+    bool meets = false;
     if (k < count) {
       const int id = args.surfel_ids[start + k];
-      const float* t = args.T + 9 * static_cast<int64_t>(id);
-      const float t00 = t[0], t01 = t[1], t02 = t[2], t10 = t[3], t11 = t[4], t12 = t[5];
-      const float t20 = t[6], t21 = t[7], t22 = t[8];
-      float* s = s_surf[tid];
-      // a = T1 x T2, b = T2 x T0, c = T0 x T1
-      s[0] = t11 * t22 - t12 * t21;  s[1] = t12 * t20 - t10 * t22;  s[2] = t10 * t21 - t11 * t20;
-      s[3] = t21 * t02 - t22 * t01;  s[4] = t22 * t00 - t20 * t02;  s[5] = t20 * t01 - t21 * t00;
-      s[6] = t01 * t12 - t02 * t11;  s[7] = t02 * t10 - t00 * t12;  s[8] = t00 * t11 - t01 * t10;
-      s[9] = t20;  s[10] = t21;  s[11] = t22;
-      s[12] = t20 * t20 + t21 * t21 + t22 * t22;
-      s[13] = -2.f * (t00 * t20 + t01 * t21 + t02 * t22);
-      s[14] = t00 * t00 + t01 * t01 + t02 * t02;
-      s[15] = -2.f * (t10 * t20 + t11 * t21 + t12 * t22);
-      s[16] = t10 * t10 + t11 * t11 + t12 * t12;
-      s[17] = args.center[2 * static_cast<int64_t>(id)];
-      s[18] = args.center[2 * static_cast<int64_t>(id) + 1];
-      s[19] = args.opacities[id];
-      s_id[tid] = id;
+      const int4 box = reinterpret_cast<const int4*>(args.boxes)[id];
+      meets = box.x < bx0 + kBlockW && box.z > bx0 && box.y < by0 + kBlockH && box.w > by0;
+      if (meets) {
+        const float* t = args.T + 9 * static_cast<int64_t>(id);
+        const float t00 = t[0], t01 = t[1], t02 = t[2], t10 = t[3], t11 = t[4], t12 = t[5];
+        const float t20 = t[6], t21 = t[7], t22 = t[8];
+        float* s = stage[lane];
+        // a = T1 x T2, b = T2 x T0, c = T0 x T1
+        s[0] = t11 * t22 - t12 * t21;  s[1] = t12 * t20 - t10 * t22;  s[2] = t10 * t21 - t11 * t20;
+        s[3] = t21 * t02 - t22 * t01;  s[4] = t22 * t00 - t20 * t02;  s[5] = t20 * t01 - t21 * t00;
+        s[6] = t01 * t12 - t02 * t11;  s[7] = t02 * t10 - t00 * t12;  s[8] = t00 * t11 - t01 * t10;
+        s[9] = t20;  s[10] = t21;  s[11] = t22;
+        s[12] = t20 * t20 + t21 * t21 + t22 * t22;
+        s[13] = -2.f * (t00 * t20 + t01 * t21 + t02 * t22);
+        s[14] = t00 * t00 + t01 * t01 + t02 * t02;
+        s[15] = -2.f * (t10 * t20 + t11 * t21 + t12 * t22);
+        s[16] = t10 * t10 + t11 * t11 + t12 * t12;
+        s[17] = args.center[2 * static_cast<int64_t>(id)];
+        s[18] = args.center[2 * static_cast<int64_t>(id) + 1];
+        s[19] = args.opacities[id];
+        stage_id[lane] = id;
+      }
     }
-    __syncthreads();
-    const int batch = min(kThreads, count - b0);
-    for (int j = 0; !done && j < batch; ++j) {
-      const float* s = s_surf[j];
+    unsigned todo = __ballot_sync(kFull, meets);
+    __syncwarp();
+    while (todo && !done) {
+      const int j = __ffs(todo) - 1;
+      todo &= todo - 1;
+      const float* s = stage[j];
       ++evaluated;
       const float p0 = x * s[0] + y * s[3] + s[6];
       const float p1 = x * s[1] + y * s[4] + s[7];
@@ -122,7 +163,7 @@ blend_forward_kernel(const BlendForwardArgs args, float far_minus_near) {
       if (alpha < kAlphaMin) continue;
       const float next = trans * (1.f - alpha);
       if (next < kTStop) { done = true; break; }
-      const int id = s_id[j];
+      const int id = stage_id[j];
       const float d = use3 ? z3 : args.depth_key[id];
       const float w = alpha * trans;
       const float* col = args.colors + 3 * static_cast<int64_t>(id);
@@ -131,15 +172,11 @@ blend_forward_kernel(const BlendForwardArgs args, float far_minus_near) {
       n0 += w * nc[0]; n1 += w * nc[1]; n2 += w * nc[2];
       depth_num += w * d;
       if (trans > 0.5f) median = d;
-      const float m = args.far_plane * (d - args.near_plane) / (far_minus_near * d);
-      dist += w * (m * m * acc_w + acc_wm2 - 2.f * m * acc_wm);
-      acc_w += w; acc_wm += w * m; acc_wm2 += w * m * m;
-      if constexpr (CB > 0) {
-        const float* f = args.features + static_cast<int64_t>(C) * id;
-#pragma unroll
-        for (int c = 0; c < CB; ++c)
-          if (c < C) feat[c] += w * f[c];
-      }
+      const double dd = d, wd = w;
+      const double m = args.far_plane * (dd - args.near_plane) / (far_minus_near * dd);
+      dist += wd * (m * m * acc_w + acc_wm2 - 2.0 * m * acc_wm);
+      acc_w += wd; acc_wm += wd * m; acc_wm2 += wd * m * m;
+      if constexpr (CB > 0) add_row<CB>(feat, args.features + static_cast<int64_t>(C) * id, C, w, vec4);
       if constexpr (KMAX > 0) {
         if (w > threshold) {
           // Insert into the descending list: a strictly larger weight moves ahead, so among
@@ -161,47 +198,68 @@ blend_forward_kernel(const BlendForwardArgs args, float far_minus_near) {
       }
       trans = next;
     }
+    __syncwarp();   // the warp's stage is read before the next batch overwrites it
   }
 
   // Warp sums of the evaluation counts, one atomic per warp.
   unsigned long long ev = evaluated;
 #pragma unroll
-  for (int off = 16; off > 0; off >>= 1) ev += __shfl_down_sync(0xffffffffu, ev, off);
-  if ((tid & 31) == 0 && ev) atomicAdd(args.evaluated, ev);
+  for (int off = 16; off > 0; off >>= 1) ev += __shfl_down_sync(kFull, ev, off);
+  if (lane == 0 && ev) atomicAdd(args.evaluated, ev);
 
-  if (!inside) return;
-  const int64_t pix = static_cast<int64_t>(py) * args.width + px;
-  const float a = 1.f - trans;
-  args.rgb[3 * pix] = rgb0 + trans * args.bg_r;
-  args.rgb[3 * pix + 1] = rgb1 + trans * args.bg_g;
-  args.rgb[3 * pix + 2] = rgb2 + trans * args.bg_b;
-  args.alpha[pix] = a;
-  args.depth[pix] = a > 1e-6f ? depth_num / a : 0.f;
-  args.median[pix] = median;
-  args.normal[3 * pix] = n0; args.normal[3 * pix + 1] = n1; args.normal[3 * pix + 2] = n2;
-  args.distortion[pix] = dist;
-  float* out = args.out_features + static_cast<int64_t>(C) * pix;
-  if constexpr (CB > 0) {
+  if (inside) {
+    const int64_t pix = static_cast<int64_t>(py) * args.width + px;
+    const float a = 1.f - trans;
+    args.rgb[3 * pix] = rgb0 + trans * args.bg_r;
+    args.rgb[3 * pix + 1] = rgb1 + trans * args.bg_g;
+    args.rgb[3 * pix + 2] = rgb2 + trans * args.bg_b;
+    args.alpha[pix] = a;
+    args.depth[pix] = a > 1e-6f ? depth_num / a : 0.f;
+    args.median[pix] = median;
+    args.normal[3 * pix] = n0; args.normal[3 * pix + 1] = n1; args.normal[3 * pix + 2] = n2;
+    args.distortion[pix] = static_cast<float>(dist);
+    if constexpr (CB > 0) {
+      float* out = args.out_features + static_cast<int64_t>(C) * pix;
+      if (vec4) {
 #pragma unroll
-    for (int c = 0; c < CB; ++c)
-      if (c < C) out[c] = feat[c];
-  } else if constexpr (KMAX > 0) {
-    for (int c = 0; c < C; ++c) {
-      float sum = 0.f;
+        for (int c = 0; c < CB; c += 4)
+          if (c < C) *reinterpret_cast<float4*>(out + c) = make_float4(feat[c], feat[c + 1], feat[c + 2], feat[c + 3]);
+      } else {
 #pragma unroll
-      for (int q = 0; q < KMAX; ++q) {
-        if (q >= K) break;
-        if (top_id[q] >= 0) sum += top_w[q] * args.features[static_cast<int64_t>(C) * top_id[q] + c];
+        for (int c = 0; c < CB; ++c)
+          if (c < C) out[c] = feat[c];
       }
-      out[c] = sum;
+    }
+  }
+  if constexpr (KMAX > 0) {
+    // The Top-K features, a pixel at a time with the warp's lanes on its channels: each of its K
+    // rows is one coalesced load (neighbouring pixels share most of their surfels, so the rows
+    // come from cache) and the pixel's channels one coalesced store. Weights and ids come from
+    // the pixel's lane; the sum runs over the list in descending weight.
+    for (int p = 0; p < 32; ++p) {
+      const int ppx = bx0 + (p & (kBlockW - 1)), ppy = by0 + p / kBlockW;
+      if (ppx >= args.width || ppy >= args.height) continue;     // the same for every lane
+      float* out = args.out_features + static_cast<int64_t>(C) * (static_cast<int64_t>(ppy) * args.width + ppx);
+      for (int c0 = 0; c0 < C; c0 += 32) {
+        const int c = c0 + lane;
+        float sum = 0.f;
+#pragma unroll
+        for (int q = 0; q < KMAX; ++q) {
+          if (q >= K) break;
+          const float wq = __shfl_sync(kFull, top_w[q], p);
+          const int iq = __shfl_sync(kFull, top_id[q], p);
+          if (iq >= 0 && c < C) sum += wq * args.features[static_cast<int64_t>(C) * iq + c];
+        }
+        if (c < C) out[c] = sum;
+      }
     }
   }
 }
 
 template <int CB, int KMAX>
 const char* launch(const BlendForwardArgs& args, cudaStream_t stream) {
-  const dim3 grid(args.tiles_x, args.tiles_y);
-  const dim3 block(kTile, kTile);
+  const dim3 grid(args.tiles_x * args.tiles_y);
+  const dim3 block(kThreads);
   const float far_minus_near = static_cast<float>(static_cast<double>(args.far_plane) - args.near_plane);
   blend_forward_kernel<CB, KMAX><<<grid, block, 0, stream>>>(args, far_minus_near);
   const cudaError_t err = cudaGetLastError();
