@@ -61,10 +61,17 @@ def ablation(n_surfels: int, W: int, H: int, C: int, topk: int, repeats: int, wi
     configs = [("Baseline (circle, full blending)", "circle", None),
                ("+ Precise tile", "precise", None),
                (f"+ Top-K (K={topk})", "circle", topk),
-               ("Full (precise + Top-K)", "precise", topk)]
+               ("Full (precise + Top-K)", "precise", topk),
+               # The floor under every row: the same walk without features (rgb, depth, normal, ...).
+               ("circle, no features", "circle", "none"),
+               ("precise, no features", "precise", "none")]
     f32 = [t.contiguous() for t in (proj.T, proj.center, proj.depth_key, proj.normal_c, opac, colors, feats)]
     rows = []
+    no_feats = feats[:, :0].contiguous()
     for name, tiles, k in configs:
+        f = no_feats if k == "none" else feats
+        k = None if k == "none" else k
+        f32[-1] = f
         with torch.no_grad():
             box = proj.box_precise if tiles == "precise" else proj.box_circle
             bins = bin_surfels(box, proj.depth_key, W, H)
@@ -73,18 +80,18 @@ def ablation(n_surfels: int, W: int, H: int, C: int, topk: int, repeats: int, wi
             kernel = cuda_ms(lambda: ext.blend_forward(offsets, ids, box32, bins.tiles_x, bins.tiles_y, W, H, *f32,
                                                        k or 0, 0.2, 1000.0, [0.0, 0.0, 0.0]), repeats)
             binning = cuda_ms(lambda: bin_surfels(box, proj.depth_key, W, H), repeats)
-            stages = cuda_ms(lambda: cuda.rasterize_cuda(proj, opac, colors, feats, W, H, k, tiles), repeats)
-            frame = cuda_ms(lambda: rasterize(means, quats, scales, opac, colors, viewmat, K, W, H, features=feats,
+            stages = cuda_ms(lambda: cuda.rasterize_cuda(proj, opac, colors, f, W, H, k, tiles), repeats)
+            frame = cuda_ms(lambda: rasterize(means, quats, scales, opac, colors, viewmat, K, W, H, features=f,
                                               topk=k, tiles=tiles, backend="cuda"), repeats)
-            out = cuda.rasterize_cuda(proj, opac, colors, feats, W, H, k, tiles)
-            err = float((out.features - full_blend).abs().mean() / full_blend.abs().mean())
+            out = cuda.rasterize_cuda(proj, opac, colors, f, W, H, k, tiles)
+            err = (float((out.features - full_blend).abs().mean() / full_blend.abs().mean()) if f.shape[1]
+                   else float("nan"))
             ref_ms = dev = float("nan")
             if with_reference:
-                ref_ms = cuda_ms(lambda: rasterize_reference(proj, opac, colors, feats, W, H, topk=k, tiles=tiles),
-                                 3)
-                ref = rasterize_reference(proj, opac, colors, feats, W, H, topk=k, tiles=tiles)
+                ref_ms = cuda_ms(lambda: rasterize_reference(proj, opac, colors, f, W, H, topk=k, tiles=tiles), 3)
+                ref = rasterize_reference(proj, opac, colors, f, W, H, topk=k, tiles=tiles)
                 dev = max(float((getattr(out, o) - getattr(ref, o)).abs().max())
-                          for o in ("rgb", "alpha", "depth", "normal", "features"))
+                          for o in ("rgb", "alpha", "depth", "normal", "features") if getattr(ref, o).numel())
         rows.append([name, kernel, binning, stages, frame, 1e3 / frame, out.stats["tile_pairs"],
                      out.stats["pairs_per_tile"], out.stats["evaluated"], err, ref_ms, dev])
     return rows
@@ -154,7 +161,7 @@ def plot(plot_rows: dict):
         ax2 = ax.twinx()
         ax2.bar(x + 0.27, [100 * r[9] for r in rows], 0.27, color="C1", label="feature error %")
         ax2.set_ylabel("feature rel. error vs full (%)", color="C1")
-        ax.set_xticks(x, [r[0].replace(" (", "\n(") for r in rows], fontsize=7)
+        ax.set_xticks(x, [r[0].replace(" (", "\n(").replace(", no", "\nno") for r in rows], fontsize=7)
         ax.set_title(f"CUDA renderer ablation, {n} surfels")
         ax.legend(loc="upper right", fontsize=7)
     fig.tight_layout()
