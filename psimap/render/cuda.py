@@ -21,6 +21,9 @@ from psimap.render.project import Projected
 
 SOURCES = Path(__file__).resolve().parent / "csrc_cuda"
 EXTENSION_NAME = "psimap_render_cuda"
+# Development hook (the CUDA kernel's mutation runs): build from another copy of csrc_cuda, under
+# its own extension name so that builds of several copies do not replace each other.
+SOURCES_ENV = "PSIMAP_CUDA_SOURCES"
 # Mirrors csrc_cuda/blend.h (kMaxChannelsAll, kMaxTopK), checked again by the bindings.
 MAX_CHANNELS_ALL = 64
 MAX_TOPK = 32
@@ -44,8 +47,11 @@ def load_extension():
                 raise RuntimeError("no CUDA device (torch.cuda.is_available() is False)")
             from torch.utils.cpp_extension import load
 
-            _extension = load(name=EXTENSION_NAME,
-                              sources=[str(SOURCES / "bindings.cpp"), str(SOURCES / "blend_fwd.cu")],
+            sources, name = SOURCES, EXTENSION_NAME
+            if os.environ.get(SOURCES_ENV):
+                sources = Path(os.environ[SOURCES_ENV]).resolve()
+                name = f"{EXTENSION_NAME}_{sources.name}"
+            _extension = load(name=name, sources=[str(sources / "bindings.cpp"), str(sources / "blend_fwd.cu")],
                               extra_cflags=["-O3"], extra_cuda_cflags=["-O3", "-lineinfo"],
                               verbose=os.environ.get("PSIMAP_CUDA_VERBOSE", "") not in ("", "0"))
         except Exception as exc:   # no toolkit, no compiler, no device: the caller falls back
