@@ -22,7 +22,9 @@ meta-path finder that runs before sys.path; a sitecustomize.py on PYTHONPATH rem
 the tests - and every subprocess they start (`psimap` console script, `python -c`) - import the copy.
 ../shared is linked next to the copy so tests that read the shared data still run.
 A mutation of the native kernels (psimap/render/csrc) is built with CMake in the copy first; one that
-does not compile counts as caught.
+does not compile counts as caught. A mutation of the CUDA kernel (psimap/render/csrc_cuda) is
+**skipped** without a CUDA device (its tests would skip, and read as SURVIVED); with one, the
+copy's tests build the mutated kernel themselves (torch's extension builder).
 
 Exit status: 0 every mutation caught, 1 any SURVIVED or ERROR, 2 none survived but some n/a.
 """
@@ -170,6 +172,7 @@ def tests_at(repo: Path, rev: str) -> None:
 
 
 NATIVE_SOURCES = "psimap/render/csrc/"
+CUDA_SOURCES = "psimap/render/csrc_cuda/"
 
 
 def swap_in_native_build(repo: Path, build: Path):
@@ -188,6 +191,15 @@ def swap_in_native_build(repo: Path, build: Path):
     link.unlink()
     link.symlink_to(built)
     return link, before
+
+
+def cuda_device() -> bool:
+    """Whether this machine has a CUDA device torch can use (the CUDA kernel's tests need one)."""
+    try:
+        import torch
+    except ImportError:
+        return False
+    return bool(torch.cuda.is_available())
 
 
 def run_tests(repo: Path, env: dict, tests: list[str]) -> tuple[int, float, str]:
@@ -249,6 +261,10 @@ def main(argv=None) -> int:
                 results.append((m, "n/a", why, 0.0))
                 print(f"{m.id:5} n/a       {m.title}: {why}", flush=True)
                 continue
+            if m.file.startswith(CUDA_SOURCES) and not cuda_device():
+                results.append((m, "skipped", "needs a CUDA device", 0.0))
+                print(f"{m.id:5} skipped   {m.title}: needs a CUDA device", flush=True)
+                continue
             key = tuple(m.tests)
             if not args.no_baseline and key not in baseline:
                 rc, dt, out = run_tests(repo, env, m.tests)
@@ -289,10 +305,10 @@ def main(argv=None) -> int:
             if args.verbose:
                 print("\n".join("      " + ln for ln in out.strip().splitlines()[-15:]), flush=True)
 
-    counts = {s: sum(r[1] == s for r in results) for s in ("caught", "SURVIVED", "n/a", "ERROR")}
+    counts = {s: sum(r[1] == s for r in results) for s in ("caught", "SURVIVED", "n/a", "ERROR", "skipped")}
     print("mutate: " + ", ".join(f"{v} {k}" for k, v in counts.items()))
     for m, status, detail, _ in results:
-        if status != "caught":
+        if status not in ("caught", "skipped"):
             print(f"  {m.id} {status}: {m.file}: {m.title} -- {detail}")
     if counts["SURVIVED"] or counts["ERROR"]:
         return 1
