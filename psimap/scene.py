@@ -178,11 +178,14 @@ class Scene:
                 int(self.cameras["width"]), int(self.cameras["height"]))
 
     def render(self, i_or_K, c2w=None, width: int | None = None, height: int | None = None,
-               features: str | None = None, **kw):
+               features: str | None = None, device=None, **kw):
         """Render training camera i, or a camera (K [3,3], c2w [4,4] OpenCV, width, height).
 
-        features: None, "semantic" or "instance" (rendered into `.features`). Other keyword arguments
-        go to `psimap.render.rasterize` (backend="auto" unless given). Returns its RenderOutput.
+        features: None, "semantic" or "instance" (rendered into `.features`). device: where to render
+        (default: where the surfels are, the CPU); "cuda" copies them there for this call and renders
+        with the CUDA kernel where it covers the request (docs/renderer.md), the outputs staying on
+        the device. Other keyword arguments go to `psimap.render.rasterize` (backend="auto" unless
+        given). Returns its RenderOutput.
         """
         import torch
 
@@ -195,13 +198,14 @@ class Scene:
             if width is None or height is None:
                 raise PsimapError("Scene.render: width and height are required with an explicit camera")
         s = self.surfels
+        dev = s["means"].device if device is None else torch.device(device)
         viewmat = torch.as_tensor(np.linalg.inv(np.asarray(c2w, dtype=np.float64)), dtype=torch.float32)
-        feats = s[features] if features else None
+        feats = s[features].to(dev) if features else None
         kw.setdefault("backend", "auto")
         with torch.no_grad():
-            return rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], viewmat,
-                             torch.as_tensor(K, dtype=torch.float32), int(width), int(height),
-                             features=feats, **kw)
+            return rasterize(*(s[k].to(dev) for k in ("means", "quats", "scales", "opacities", "colors")),
+                             viewmat.to(dev), torch.as_tensor(K, dtype=torch.float32, device=dev), int(width),
+                             int(height), features=feats, **kw)
 
     def rendered_depths(self, cameras: Sequence[int] | None = None, depth: str = "median",
                         min_alpha: float = 0.5, progress: bool = False, supersample: int = 1):

@@ -198,3 +198,38 @@ def test_a_build_failure_is_one_clear_error(monkeypatch):
             rasterize(*scene[:5], viewmat.float().cuda(), K.float().cuda(), W, H, backend="cuda")
         out = rasterize(*scene[:5], viewmat.float().cuda(), K.float().cuda(), W, H, backend="auto")
     assert out.stats["backend"] == "reference"
+
+
+def _scene_of(scene):
+    """A psimap Scene holding random_scene's surfels (features as its semantic channels)."""
+    from psimap.scene import Scene
+
+    m, q, s, o, c, f = [t.float() for t in scene]
+    return Scene({"means": m, "quats": q, "scales": s, "opacities": o, "colors": c, "semantic": f})
+
+
+def test_scene_render_on_the_cpu_device_is_the_default_render():
+    viewmat, K = camera()
+    sc = _scene_of(random_scene(60, 4))
+    c2w = torch.linalg.inv(viewmat).numpy()
+    a = sc.render(K.numpy(), c2w, W, H, features="semantic")
+    b = sc.render(K.numpy(), c2w, W, H, features="semantic", device="cpu")
+    assert float(a.alpha.max()) > 0.5
+    for k in OUTPUTS:
+        assert torch.equal(getattr(a, k), getattr(b, k)), k
+
+
+@needs_cuda
+def test_scene_render_on_a_cuda_device_uses_the_kernel():
+    viewmat, K = camera()
+    sc = _scene_of(random_scene(60, 4))
+    c2w = torch.linalg.inv(viewmat).numpy()
+    cpu = sc.render(K.numpy(), c2w, W, H, features="semantic", topk=4, backend="reference")
+    gpu = sc.render(K.numpy(), c2w, W, H, features="semantic", topk=4, device="cuda")
+    assert gpu.stats["backend"] == "cuda" and gpu.alpha.device.type == "cuda"
+    assert sc.surfels["means"].device.type == "cpu"                  # the scene itself stays put
+    for k in OUTPUTS:
+        a, b = getattr(cpu, k), getattr(gpu, k).cpu()
+        # Off the decision bands the two agree to float rounding; allow a few banded pixels.
+        close = (a - b).abs() <= 1e-4 * (1 + a.abs())
+        assert float(close.float().mean()) > 0.98, k
