@@ -36,11 +36,28 @@ def native_available() -> bool:
     return True
 
 
-def _cuda_covers(dtype: torch.dtype, channels: int, topk: int | None) -> bool:
-    """Whether backend="auto" renders with the CUDA kernel: it covers the inputs and builds here."""
+def _use_cuda(backend: str, device: torch.device, dtype: torch.dtype, channels: int, topk: int | None,
+              needs_grad: bool) -> bool:
+    """Whether to render with the CUDA kernel: always for backend="cuda" (ValueError where it cannot:
+    not a CUDA device, a gradient needed, inputs beyond it; PsimapError when it cannot be built),
+    for "auto" (on a CUDA device) when nothing needs a gradient, it covers the inputs and builds."""
     from psimap.render import cuda
 
-    return cuda.supported(dtype, channels, topk) and cuda.available()
+    if backend != "cuda":
+        return not needs_grad and cuda.supported(dtype, channels, topk) and cuda.available()
+    if device.type != "cuda":
+        raise ValueError(f"rasterize: backend='cuda' needs the tensors on a CUDA device, got {device}")
+    if needs_grad:
+        raise ValueError("rasterize: backend='cuda' renders without gradients (forward only); "
+                         "use backend='reference' or 'auto', or render under torch.no_grad()")
+    if not cuda.supported(dtype, channels, topk):
+        raise ValueError(f"rasterize: backend='cuda' takes float32 with C <= {cuda.MAX_CHANNELS_ALL} channels "
+                         f"blending all or topk <= {cuda.MAX_TOPK}; got {dtype}, C = {channels}, topk = {topk}")
+    try:
+        cuda.load_extension()
+    except RuntimeError as exc:
+        raise PsimapError(f"{exc}; use backend='reference'") from exc
+    return True
 
 
 def project(means, quats, scales, opacities, viewmat, K, width: int, height: int, near: float = 0.2,
@@ -109,30 +126,10 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
     from psimap.render.project import project_surfels
 
     if backend == "cuda" or (backend == "auto" and device.type == "cuda"):
-        n_ch = 0 if features is None else int(features.shape[1])
         needs_grad = torch.is_grad_enabled() and any(
             t is not None and t.requires_grad for t in (means, quats, scales, opacities, colors, viewmat, K,
                                                         features, background))
-        if backend == "cuda":
-            from psimap.render import cuda
-
-            if device.type != "cuda":
-                raise ValueError(f"rasterize: backend='cuda' needs the tensors on a CUDA device, got {device}")
-            if needs_grad:
-                raise ValueError("rasterize: backend='cuda' renders without gradients (forward only); "
-                                 "use backend='reference' or 'auto', or render under torch.no_grad()")
-            if not cuda.supported(dtype, n_ch, topk):
-                raise ValueError(f"rasterize: backend='cuda' takes float32 with C <= {cuda.MAX_CHANNELS_ALL} "
-                                 f"channels blending all or topk <= {cuda.MAX_TOPK}; got {dtype}, C = {n_ch}, "
-                                 f"topk = {topk}")
-            try:
-                cuda.load_extension()
-            except RuntimeError as exc:
-                raise PsimapError(f"{exc}; use backend='reference'") from exc
-            use_cuda = True
-        else:
-            use_cuda = not needs_grad and _cuda_covers(dtype, n_ch, topk)
-        if use_cuda:
+        if _use_cuda(backend, device, dtype, 0 if features is None else int(features.shape[1]), topk, needs_grad):
             from psimap.render.cuda import rasterize_cuda
 
             proj = project_surfels(means, quats, scales, opacities, viewmat, K, width, height, near, far)
