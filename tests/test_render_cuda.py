@@ -233,3 +233,14 @@ def test_scene_render_on_a_cuda_device_uses_the_kernel():
         # Off the decision bands the two agree to float rounding; allow a few banded pixels.
         close = (a - b).abs() <= 1e-4 * (1 + a.abs())
         assert float(close.float().mean()) > 0.98, k
+
+
+def test_a_first_build_says_so_on_stderr(tmp_path, monkeypatch, capsys):
+    """The one-line notice before a compile (torch's build folder has no module yet), and none when
+    the module is there."""
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+    cuda._say_if_building("psimap_render_cuda_probe")
+    assert "compiling the CUDA renderer once" in capsys.readouterr().err
+    (tmp_path / "psimap_render_cuda_probe" / "psimap_render_cuda_probe.so").write_bytes(b"")
+    cuda._say_if_building("psimap_render_cuda_probe")
+    assert capsys.readouterr().err == ""

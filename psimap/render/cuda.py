@@ -10,6 +10,7 @@ it holds in registers: `supported`). PSIMAP_CUDA_VERBOSE=1 shows the compiler's 
 from __future__ import annotations
 
 import os
+import sys
 import threading
 from pathlib import Path
 
@@ -51,6 +52,7 @@ def load_extension():
             if os.environ.get(SOURCES_ENV):
                 sources = Path(os.environ[SOURCES_ENV]).resolve()
                 name = f"{EXTENSION_NAME}_{sources.name}"
+            _say_if_building(name)
             _extension = load(name=name, sources=[str(sources / "bindings.cpp"), str(sources / "blend_fwd.cu")],
                               extra_cflags=["-O3"], extra_cuda_cflags=["-O3", "-lineinfo"],
                               verbose=os.environ.get("PSIMAP_CUDA_VERBOSE", "") not in ("", "0"))
@@ -58,6 +60,20 @@ def load_extension():
             _load_error = f"the CUDA renderer could not be built: {type(exc).__name__}: {exc}".splitlines()[0]
             raise RuntimeError(_load_error) from exc
         return _extension
+
+
+def _say_if_building(name: str) -> None:
+    """One line on stderr when the module is not in torch's build cache yet: the compile takes
+    ~25-60 s, and a render that waits that long without a word looks hung."""
+    try:
+        from torch.utils.cpp_extension import _get_build_directory   # private: may move
+
+        folder = Path(_get_build_directory(name, verbose=False))
+        built = any(folder.glob(f"{name}*.so")) or any(folder.glob(f"{name}*.pyd"))
+    except Exception:
+        return
+    if not built:
+        print(f"psimap: compiling the CUDA renderer once (~30 s; cached in {folder})", file=sys.stderr, flush=True)
 
 
 def available() -> bool:
