@@ -14,8 +14,8 @@
 //
 // Features: with topk = 0 every blended surfel's C channels are added in registers (the paper's
 // baseline, templated on a channel capacity); with topk = K each pixel keeps its K largest
-// weights (ties: the earlier surfel stays) in registers and the warp gathers its pixels' K feature
-// rows at the end (the paper's Top-K hard selection), so the walk touches no feature.
+// weights (ties: the earlier surfel stays) in registers and sums its K feature rows at the end
+// (the paper's Top-K hard selection), so the walk touches no feature.
 #include <cuda_runtime.h>
 
 #include <cstdint>
