@@ -23,7 +23,7 @@ import torch
 
 import psimap.render.native as native
 from posed import random_c2w, to_world, viewmat as viewmat_of
-from render_cases import (FAR, H, NEAR, OUTPUTS, W, assert_forward_close, boundary_pixels, camera,  # noqa: F401
+from render_cases import (FAR, H, NEAR, OUTPUTS, W, assert_forward_close, boundary_pixels, camera,
                           fresh_seed, hard_scene, random_scene)
 from psimap.render import project_surfels, rasterize
 
