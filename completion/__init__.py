@@ -140,7 +140,7 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
                           seconds=time.perf_counter() - t0)
     from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
     from .freespace import cameras_seeing, check_cameras, known_free, seen_on_surface
-    from .meshops import cached_on, genus, is_solid, seal_handles, solidify, to_manifold
+    from .meshops import genus, is_solid, seal_handles, solids_near, to_manifold
     from .support import normalise_planes, planes_from_background, support_below
 
     # Context is validated before any early return so malformed input always fails loudly.
@@ -179,8 +179,8 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
     free_fn = (lambda q: known_free(q, cams, 2 * tol)) if cams else None
     near = [m for m in (context.neighbours or []) if m is not None and len(m.faces)
             and not ((m.bounds[1] < lo).any() or (m.bounds[0] > hi).any())]
-    # a neighbour's solid serves every object it is near (kept on the neighbour, its manifold on it)
-    obstacles = [cached_on(m, ("psimap.solid", 0.5 * tol), lambda m=m: solidify(m, 0.5 * tol)) for m in near]
+    # the neighbours' solids only where they are near, at this object's pitch, the open ones as one
+    obstacles = solids_near(near, (lo, hi), 0.5 * tol)
     if background is not None and is_solid(background):
         obstacles.append(background)
     obstacles = [o for o in obstacles if o is not None]

@@ -58,6 +58,19 @@ def circle_fit(xy: np.ndarray):
     return _kasa_fit(xy)
 
 
+# The geometric circle refinement runs on at most this many of an object's points: its cost grows
+# with the points (0.3 s a fit on a 30k-point real scan, 4.5 % of a 7-Scenes export), its answer
+# does not past a few thousand (the noise averages out well below a tolerance)
+CIRCLE_FIT_POINTS = 3000
+
+
+def _at_most(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """points [P, ...], or n of them drawn without replacement (the same n for the same input)."""
+    if len(points) <= n:
+        return points
+    return points[np.random.default_rng(seed).choice(len(points), n, replace=False)]
+
+
 def _robust_circle(xy: np.ndarray, init, tolerance: float):
     """Geometric circle fit (radial residuals, Cauchy loss) from an algebraic start: points on the
     caps lie inside the circle and would bias a plain least-squares fit. Returns (centre, radius)."""
@@ -114,7 +127,7 @@ def fit_cylinder(points: np.ndarray, tolerance: float, support=None):
         circ = circle_fit(local[:, :2])
         if circ is None:
             continue
-        c2, r = _robust_circle(local[:, :2], circ, tolerance)
+        c2, r = _robust_circle(_at_most(local[:, :2], CIRCLE_FIT_POINTS), circ, tolerance)
         rel = local[:, :2] - c2
         arc = 10.0 * np.unique(np.floor(np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) / 10.0)).size
         # A flat face is a circle of huge radius: demand a real arc (>= 90 deg, r <= 0.75 extent).

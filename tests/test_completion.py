@@ -113,9 +113,10 @@ def test_box_between_wall_and_neighbour_stays_clear_of_both():
 
 
 def test_neighbour_solids_are_kept_on_the_neighbour_until_it_changes():
-    """An export completes every object against the same neighbours and background: their solids
-    and ray-casting index are built once (cached_on, in the mesh's own trimesh cache), a second
-    completion gives the same mesh, and a mesh edited in place is built again, never served stale."""
+    """An export completes every object against the same neighbours and background: the
+    background's ray-casting index is built once (cached_on, in the mesh's own trimesh cache), a
+    second completion gives the same mesh, and a neighbour edited in place is used as it is now,
+    never a stale copy (its solid is built per object, within the object's box)."""
     from psimap.completion.meshops import cached_on
 
     calls = []
@@ -157,13 +158,48 @@ def test_neighbour_solids_are_kept_on_the_neighbour_until_it_changes():
                   support_planes=TABLE, background=_wall(y0), neighbours=[scan])
     a, b = complete(None, ctx), complete(None, ctx)
     assert a.completed and np.array_equal(a.mesh.vertices, b.mesh.vertices)
-    held = scan._cache[("psimap.solid", 0.5 * VOXEL)][0]
-    assert held is not None and held.is_watertight and held is not scan
-    scan.apply_translation([0.02, 0, 0])    # moved in place (still near): its old solid must not be used
-    assert scan._cache[("psimap.solid", 0.5 * VOXEL)] is None
-    complete(None, ctx)
-    moved = scan._cache[("psimap.solid", 0.5 * VOXEL)][0]
-    np.testing.assert_allclose(moved.bounds - held.bounds, [[0.02, 0, 0], [0.02, 0, 0]], atol=0.5 * VOXEL)
+    assert volume_of_intersection(a.mesh, neighbour) < 2e-7
+    scan.apply_translation([-0.01, 0, 0])   # moved in place, into the object's box: the result follows it
+    moved = complete(None, ctx)
+    now = neighbour.copy().apply_translation([-0.01, 0, 0])
+    assert moved.completed and moved.mesh.volume < a.mesh.volume - 2e-5
+    assert volume_of_intersection(moved.mesh, now) < 0.6 * volume_of_intersection(a.mesh, now)
+
+
+def test_neighbour_obstacles_are_their_parts_near_the_object():
+    """The neighbours' obstacles are solidified only within the object's box: a 2 m open table scan
+    beside a 12 cm object is a small closed solid there (the whole table at the object's pitch:
+    325 k faces), the band whole across the box; a second open scan there joins the same solid; a
+    watertight neighbour is itself; a scan outside the box gives nothing."""
+    from psimap.completion.meshops import inside, solids_near
+
+    pitch = 0.002
+    table = trimesh.creation.box([2.0, 1.0, 0.7])
+    table.apply_translation([0.0, 0.0, 0.35])
+    table.update_faces(table.face_normals[:, 2] > -0.5)        # open underneath: not a solid
+    table = table.subdivide().subdivide()
+    assert not is_solid(table)
+    lo, hi = np.array([0.2, -0.1, 0.68]), np.array([0.32, 0.02, 0.8])     # an object on the top
+    (near,) = solids_near([table], (lo, hi), pitch)
+    assert is_solid(near) and len(near.faces) < 30_000
+    assert (near.bounds[0] >= lo - 4 * pitch).all() and (near.bounds[1] <= hi + 4 * pitch).all()
+    # every point of the top within the box is inside the band: no pores
+    top = np.random.default_rng(0).uniform(lo, hi, (600, 3))
+    top[:, 2] = 0.7
+    assert inside(top, near).all()
+    assert not inside(top + [0, 0, 4 * pitch], near).any()     # about three cells thick, no more
+    assert solids_near([table], (lo + [0, 0, 0.5], hi + [0, 0, 0.5]), pitch) == []   # nothing there
+
+    # a cup's open scan on the table, in the box: one solid holds both bands; a ball is itself
+    cup = trimesh.creation.cylinder(0.03, 0.08, sections=32).apply_translation([0.3, 0.0, 0.74])
+    cup.update_faces(cup.face_normals[:, 2] < 0.5)               # open at the top
+    ball = trimesh.creation.icosphere(2, radius=0.02).apply_translation([0.22, -0.05, 0.75])
+    out = solids_near([table, cup, None, ball], (lo, hi), pitch)
+    assert len(out) == 2 and out[0] is ball and is_solid(out[1])
+    side = trimesh.sample.sample_surface(cup, 400, seed=1)[0]
+    side = side[((side >= lo) & (side <= hi)).all(1)]
+    assert len(side) > 50 and inside(np.vstack([top[:50], side]), out[1]).all()
+    assert len(out[1].faces) < 60_000
 
 
 

@@ -47,6 +47,27 @@ def test_axis_fits_without_a_support_allocate_per_point_not_per_pair(fit):
     assert abs(axes[0] @ axis) > 0.99
 
 
+def test_cylinder_fit_refines_on_a_spread_sample_of_a_large_scan():
+    """A 30k-point scan's circle is refined on CIRCLE_FIT_POINTS of its points, drawn across the
+    whole scan (a real scan's points come in order: its first few thousand cover a sliver of the
+    arc): the cylinder of the sample is that of every point to a tenth of the tolerance."""
+    from psimap.completion.primitives import (CIRCLE_FIT_POINTS, _robust_circle, axis_frame, circle_fit,
+                                              fit_cylinder)
+
+    rng = np.random.default_rng(3)
+    n = 30_000
+    a = np.sort(rng.uniform(0, 1.2 * np.pi, n))                 # ordered along the arc, as scanned
+    p = np.column_stack([0.04 * np.cos(a), 0.04 * np.sin(a), rng.uniform(0, 0.12, n)])
+    p += rng.normal(0, 0.001, (n, 3)) + [0.3, -0.2, 0.0]
+    assert CIRCLE_FIT_POINTS < n
+    out = fit_cylinder(p, 0.002, support=((0.0, 0.0, 1.0), 0.0))
+    assert out is not None and out.is_watertight
+    xy = (p @ axis_frame(np.array([0.0, 0.0, 1.0])))[:, :2]
+    _, r_all = _robust_circle(xy, circle_fit(xy), 0.002)
+    radius = np.linalg.norm(out.vertices[:, :2] - [0.3, -0.2], axis=1).max()
+    assert abs(radius - r_all) < 0.0002 and abs(r_all - 0.04) < 0.0005
+
+
 def test_clock_step_adds_wall_user_and_system_seconds():
     from psimap.exporters import clock
 
