@@ -5,9 +5,12 @@ Three generated captures (psimap.data.synthetic, exact ground truth):
   demo      the scene `psimap demo` trains: a 160x120, 60-frame room;
   tabletop  a 640x480, 10-frame hand-held orbit around a table with things on it;
   room      a 320x240, 48-frame room.
+and a real one, when ../shared/data holds it (a user's capture: no masks, no ground truth):
+  chess     20 of the 7-Scenes chess Kinect frames (640x480, every 7th), labelled by
+            `psimap segment` (its seconds are printed, not a stage: a capture with masks skips it).
 Each is trained (TrainConfig defaults), exported (`--format all`, MuJoCo settle check) and
 evaluated (geometry F1 / Chamfer-L1 and PQ of the checkpoint, object F-score and dynamic things of
-the export). Stage times are wall, user and system seconds of this process (and its children),
+the export; for chess only what needs no ground truth: the objects exported, the dynamic ones). Stage times are wall, user and system seconds of this process (and its children),
 exclusive: a stage nested in another (completion inside extraction) is counted once, in itself.
   prior       the SOGMM prior (trainer.init_from_prior)
   geometry    the geometry steps and everything else of `train` (frames loaded, density control)
@@ -65,7 +68,10 @@ CAPTURES = {
     "demo": dict(layout="room", width=160, height=120, frames=60, seed=0),
     "tabletop": dict(layout="tabletop", width=640, height=480, frames=10, seed=0),
     "room": dict(layout="room", width=320, height=240, frames=48, seed=0),
+    "chess": dict(layout="7scenes-chess", width=640, height=480, frames=20, seed=0),
 }
+CHESS = ROOT.parent / "shared" / "data" / "7scenes-chess"
+CHESS_EVERY = 7             # frames 0, 7, ... 133: the sequence's whole sweep of the room
 STAGES = ("prior", "geometry", "panoptic", "extraction", "completion", "collision", "writers", "check")
 TRAIN_STAGES = ("prior", "geometry", "panoptic")
 
@@ -162,8 +168,13 @@ def run_capture(name: str, work: Path) -> dict:
 
     spec = CAPTURES[name]
     data, ckpt, export = work / "data", work / "scene.ckpt", work / "export"
-    generate(data, seed=spec["seed"], frames=spec["frames"], width=spec["width"], height=spec["height"],
-             layout=spec["layout"], overwrite=True)
+    real = name == "chess"
+    segment_s = None
+    if real:
+        segment_s = copy_chess(data, spec["frames"])
+    else:
+        generate(data, seed=spec["seed"], frames=spec["frames"], width=spec["width"], height=spec["height"],
+                 layout=spec["layout"], overwrite=True)
     clock = StageClock()
     instrument(clock)
     import psimap.exporters.pipeline as pipeline
@@ -176,22 +187,46 @@ def run_capture(name: str, work: Path) -> dict:
     t2 = _usage()
     report = pipeline.export_scene(load_scene(ckpt), export, "all", overwrite=True)
     t3 = _usage()
-    res = evaluate(ckpt, data)
-    obj = evaluate(export, data)["objects"]["summary"]
     m = scene.metrics
-    return {
+    row = {
         "capture": name, **spec,
         "stages": {s: dict(zip(("wall", "user", "sys"), v)) for s, v in clock.times.items()},
         "train": dict(zip(("wall", "user", "sys"), (t1[i] - t0[i] for i in range(3)))),
         "export": dict(zip(("wall", "user", "sys"), (t3[i] - t2[i] for i in range(3)))),
         "panoptic_steps": m.get("panoptic_steps"), "geometry_steps": m.get("steps"),
         "surfels": m.get("surfels"), "queries": m.get("queries_final"), "instances": m.get("instances"),
+        "check_passed": bool(report.get("check", {}).get("passed", False)),
+    }
+    if real:        # no ground truth: what the export made of the instances
+        objs = [o for o in report.get("objects", []) if not o.get("skipped")]
+        return row | {"segment_s": segment_s, "f1": None, "chamfer_cm": None, "pq": None, "pq_thing": None,
+                      "object_f": None, "found": len(objs), "gt_things": None,
+                      "dynamic": sum(1 for o in objs if not o.get("static")), "movable": len(objs)}
+    res = evaluate(ckpt, data)
+    obj = evaluate(export, data)["objects"]["summary"]
+    return row | {
         "f1": res["geometry"]["f1"], "chamfer_cm": 100 * res["geometry"]["chamfer_l1"],
         "pq": res["panoptic"]["pq"], "pq_thing": res["panoptic"]["pq_thing"],
         "object_f": obj["mean_fscore_25mm"], "found": obj["n_found"], "gt_things": obj["n_gt_things"],
         "dynamic": obj["n_dynamic"], "movable": obj["n_movable_found"],
-        "check_passed": bool(report.get("check", {}).get("passed", False)),
     }
+
+
+def copy_chess(data: Path, frames: int) -> float:
+    """`frames` of the shared 7-Scenes chess frames (every CHESS_EVERY-th) copied to `data` and
+    labelled by `psimap segment`, as a user without masks would; returns the segmenter's seconds."""
+    import shutil
+
+    from psimap.segment.capture import segment_capture
+
+    data.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(CHESS / "camera-intrinsics.txt", data)
+    for i in range(0, frames * CHESS_EVERY, CHESS_EVERY):
+        for p in CHESS.glob(f"frame-{i:06d}.*"):
+            shutil.copy2(p, data / p.name)
+    t = time.perf_counter()
+    segment_capture(data, preview=None, progress=False)
+    return time.perf_counter() - t
 
 
 def child_main(a) -> None:
@@ -225,6 +260,11 @@ def panoptic_share(r: dict) -> float:
     return r["stages"]["panoptic"]["wall"] / train if train else float("nan")
 
 
+def _num(v, spec: str) -> str:
+    """A quality figure, or n/a where the capture has no ground truth for it (the real one)."""
+    return "n/a" if v is None else format(v, spec)
+
+
 def report(rows: list[dict], write: bool = True) -> None:
     import matplotlib
 
@@ -244,8 +284,9 @@ def report(rows: list[dict], write: bool = True) -> None:
         table.append([r["capture"], r["label"]] + [f"{st[s]['wall']:.1f}" for s in STAGES]
                      + [f"{sum(st[s]['wall'] for s in TRAIN_STAGES):.1f}",
                         f"{sum(st[s]['wall'] for s in STAGES[3:]):.1f}", f"{100 * panoptic_share(r):.0f} %",
-                        r["panoptic_steps"], f"{r['f1']:.4f}", f"{r['chamfer_cm']:.2f}", f"{r['pq']:.3f}",
-                        f"{r['object_f']:.3f}", f"{r['found']}/{r['gt_things']}",
+                        r["panoptic_steps"], _num(r["f1"], ".4f"), _num(r["chamfer_cm"], ".2f"), _num(r["pq"], ".3f"),
+                        _num(r["object_f"], ".3f"),
+                        f"{r['found']}/{r['gt_things']}" if r["gt_things"] is not None else f"{r['found']} exported",
                         f"{r['dynamic']}/{r['movable']}"])
     cpu_header = ["capture", "label"] + [f"{s} user / sys" for s in STAGES] + ["max sys/user"]
     cpu = []
@@ -266,7 +307,8 @@ def report(rows: list[dict], write: bool = True) -> None:
         ax.barh(names, w, left=left, color=colors(i), label=s)
         left += w
     for y, (r, x) in enumerate(zip(rows, left)):
-        ax.text(x + 1, y, f"PQ {r['pq']:.3f}, obj F {r['object_f']:.3f}", va="center", fontsize=7)
+        ax.text(x + 1, y, f"PQ {_num(r['pq'], '.3f')}, obj F {_num(r['object_f'], '.3f')}" if r["pq"] is not None
+                else f"{r['found']} objects, {r['dynamic']} dynamic", va="center", fontsize=7)
     ax.invert_yaxis()
     ax.set_xlabel("wall seconds (2-core CPU)")
     ax.set_xlim(0, left.max() * 1.35 if len(rows) else 1)
@@ -286,7 +328,8 @@ def report(rows: list[dict], write: bool = True) -> None:
               "prior + geometry + panoptic; panoptic share = panoptic / train. Quality: F1@5cm and "
               "Chamfer-L1 of the checkpoint's mesh, PQ of its rendered labels (psimap eval), object "
               "F-score at 2.5 cm over the ground-truth things and things found / dynamic of the export "
-              "(psimap eval EXPORT). Times compare only between rows measured on one CPU: rows that "
+              "(psimap eval EXPORT); chess (real, no ground truth): objects exported and dynamic, its "
+              "labels from `psimap segment` (seconds in the runs file, not a stage). Times compare only between rows measured on one CPU: rows that "
               "name none were measured on the machine of the sessions up to 2026-11-25 (AVX-512, ~1.7x "
               "faster than the AMD EPYC of the rows after it). Runs: " + runs + ".")
     head = []
@@ -300,7 +343,9 @@ def report(rows: list[dict], write: bool = True) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--captures", default=",".join(CAPTURES), help="comma-separated: " + ", ".join(CAPTURES))
+    present = [c for c in CAPTURES if c != "chess" or CHESS.is_dir()]
+    ap.add_argument("--captures", default=",".join(present),
+                    help="comma-separated: " + ", ".join(CAPTURES) + " (chess needs ../shared/data)")
     ap.add_argument("--label", default="current", help="tag of this run's rows (before / after ...)")
     ap.add_argument("--code", default="", help="a psimap source tree to time instead of the installed one")
     ap.add_argument("--work", default="", help="keep the captures, checkpoints and exports here")
@@ -316,6 +361,8 @@ def main() -> None:
     bad = [c for c in names if c not in CAPTURES]
     if bad:
         sys.exit(f"error: unknown capture {bad[0]!r} (choose from {', '.join(CAPTURES)})")
+    if "chess" in names and not CHESS.is_dir():
+        sys.exit(f"error: capture chess needs the shared 7-Scenes frames at {CHESS}")
     base = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="psimap-e2e-"))
     commit = subprocess.run(["git", "-C", str(a.code or ROOT), "rev-parse", "--short", "HEAD"],
                             capture_output=True, text=True).stdout.strip() or "tree " + str(a.code)
@@ -335,8 +382,10 @@ def main() -> None:
                    load=f"{load:.1f}-{os.getloadavg()[0]:.1f}", process_s=time.perf_counter() - t,
                    cpu=cpu_model())
         print(f"{name} ({a.label}): train {row['train']['wall']:.1f} s (panoptic "
-              f"{row['stages']['panoptic']['wall']:.1f} s), export {row['export']['wall']:.1f} s; PQ {row['pq']:.3f}, "
-              f"object F {row['object_f']:.3f}, F1 {row['f1']:.4f}", flush=True)
+              f"{row['stages']['panoptic']['wall']:.1f} s), export {row['export']['wall']:.1f} s; PQ "
+              f"{_num(row['pq'], '.3f')}, object F {_num(row['object_f'], '.3f')}, F1 {_num(row['f1'], '.4f')}, "
+              f"{row['found']} objects, {row['dynamic']} dynamic"
+              + (f"; segment {row['segment_s']:.1f} s" if row.get("segment_s") else ""), flush=True)
         new.append(row)
         if not a.no_write:      # kept after every capture: a later failure loses nothing measured
             rows = [r for r in load_runs() if (r["label"], r["capture"]) != (a.label, name)] + [row]

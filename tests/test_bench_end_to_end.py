@@ -17,3 +17,27 @@ def test_code_child_imports_the_given_tree_before_anything_imports_psimap(tmp_pa
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 7, p.stdout + p.stderr
     assert "psimap from the given tree" in p.stdout
+
+
+def test_report_shows_a_real_capture_without_ground_truth_as_n_a(capsys):
+    """The real capture (chess) has no ground truth: its quality cells read n/a and its objects
+    "N exported", beside a generated capture's numbers (a None formatted as a float raised)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import end_to_end as e2e
+    finally:
+        sys.path.pop(0)
+    stages = {s: {"wall": 1.0 + i, "user": 1.0, "sys": 0.1} for i, s in enumerate(e2e.STAGES)}
+    common = {"stages": stages, "panoptic_steps": 240, "commit": "abc", "measured": "now", "load": "1.0-1.0"}
+    rows = [dict(common, capture="demo", label="x", f1=0.96, chamfer_cm=1.2, pq=0.81, object_f=0.78,
+                 found=14, gt_things=15, dynamic=9, movable=11),
+            dict(common, capture="chess", label="x", f1=None, chamfer_cm=None, pq=None, object_f=None,
+                 found=31, gt_things=None, dynamic=7, movable=31)]
+    e2e.report(rows, write=False)
+    out = capsys.readouterr().out
+    demo = next(line for line in out.splitlines() if line.startswith("| demo |"))
+    chess = next(line for line in out.splitlines() if line.startswith("| chess |"))
+    assert "| 0.9600 | 1.20 | 0.810 | 0.780 | 14/15 | 9/11 |" in demo
+    assert "| n/a | n/a | n/a | n/a | 31 exported | 7/31 |" in chess
+    # train = prior + geometry + panoptic (1 + 2 + 3), export = the other five stages (4 + ... + 8)
+    assert "| 6.0 | 30.0 | 50 % |" in chess
