@@ -183,7 +183,6 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
     obstacles = solids_near(near, (lo, hi), 0.5 * tol)
     if background is not None and is_solid(background):
         obstacles.append(background)
-    obstacles = [o for o in obstacles if o is not None]
     obstacle_manifolds = [to_manifold(o) for o in obstacles]    # converted once, used per candidate
     obs = Observation(points=points, normals=normals, tolerance=tol, spacing=spacing, coverage=coverage,
                       support=support, blocking=blocking, free=free_fn, context=context)
