@@ -337,6 +337,59 @@ def test_label_settle_counts_stuff_segments_not_the_surfels_a_thing_class_trades
     assert h["classes_changed"] == pytest.approx(10 / 3000) and h["instances_changed"] == pytest.approx(10 / 1010)
 
 
+def test_label_settle_ends_labels_that_wander():
+    """Masks that disagree between views keep a floor of churn above the tolerance: two periods in
+    a row above WANDER_FLOOR x tol, each below the period before but not WANDER_FALL below it, end
+    the steps ("wandering"); a churn still falling faster, one below the floor, a rising one
+    (labels still reorganising), or a stuff class still moving do not."""
+    from psimap.panoptic.fit import WANDER_FALL, WANDER_FLOOR, LabelSettle
+
+    class Field:
+        class_thing = torch.tensor([False, True])                 # columns: floor, desk
+
+        def __init__(self):
+            self.steps = 0
+            self.sem = torch.ones(2000, dtype=torch.long)
+            self.sem[1000:] = 0                                   # 1000 desk, 1000 floor surfels
+            self.inst = torch.where(self.sem == 1, 1, 0)
+            self.inst[500:1000] = 2                               # two desk halves
+            self.queries = type("Q", (), {"count": 2})()
+
+        def current_labels(self, means):
+            return self.sem.clone(), self.inst.clone()
+
+        def churn(self, permille):                                # that many of the 1000 change owner
+            self.inst[:permille] = 3 - self.inst[:permille]
+
+    def run(series, tol=0.02, moves=()):
+        f, rule = Field(), LabelSettle(tol)
+        stops = [rule.settled(f, None)]                           # the first period: nothing to compare
+        for i, k in enumerate(series):
+            f.churn(k)
+            if moves:                                             # floor surfels to and from the desk
+                f.sem[1000:1000 + moves[i]] = 1 - f.sem[1000:1000 + moves[i]]
+            stops.append(rule.settled(f, None))
+        return stops, rule
+
+    assert WANDER_FLOOR * 0.02 < 0.069 and (1 - WANDER_FALL) * 0.076 < 0.069 < 0.076
+    assert WANDER_FLOOR * 0.02 > 0.046
+    stops, rule = run([124, 89, 76, 69])                          # the chess capture's periods
+    assert stops == [False] * 4 + [True] and rule.reason == "wandering" and rule.wander == 2
+    assert rule.before == pytest.approx(0.076) and rule.last == pytest.approx(0.069)
+    assert run([124, 89, 65, 48, 35])[0] == [False] * 6          # still falling by more than 20 %
+    assert run([128, 76, 132, 57, 90])[0] == [False] * 6         # up and down (a generated room)
+    assert run([70, 80, 95, 30, 10, 5])[0] == [False] * 6 + [True]     # rising: reorganising
+    assert run([39, 38, 37, 36])[0] == [False] * 5               # below 3 x tol: only calm ends it
+    assert run([39, 38, 37, 36], tol=0.01)[0] == [False] * 3 + [True] * 2   # the floor follows tol
+    assert run([31, 11, 46, 45, 44])[0] == [False] * 6           # exact masks' transient plateau < 6 %
+    assert run([27, 32, 10, 5])[0] == [False] * 4 + [True]       # a rise, then calm twice: settled
+    assert run([27, 32, 10, 5])[1].reason == "settled"
+    assert run([89, 76, 10, 9])[0] == [False] * 4 + [True]       # wandering once, then calm twice
+    # a floor segment still changing by 6 % each period: not wandering
+    assert run([124, 89, 76, 69], moves=[60] * 4)[0] == [False] * 5
+    assert run([124, 89, 76, 69], tol=0.0)[0] == [False] * 5     # tol 0: the cap, always
+
+
 def two_clusters_three_queries():
     """(field, means [40, 3], query features [3, 4], the far points [20, 3]): two clusters of 20
     surfels 0.5 m apart whose surfels carry the features of queries 0 and 2; query 1 sits 9 m away,
