@@ -364,6 +364,15 @@ def main() -> None:
     if "chess" in names and not CHESS.is_dir():
         sys.exit(f"error: capture chess needs the shared 7-Scenes frames at {CHESS}")
     base = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="psimap-e2e-"))
+    run_all(a, names, base)
+    if not a.work:      # its own scratch (~20-50 MB a run); kept when a capture failed, for its log
+        import shutil
+
+        shutil.rmtree(base, ignore_errors=True)
+
+
+def run_all(a, names: list[str], base: Path) -> None:
+    """Each capture in its own child process under base; rows kept and the section written."""
     commit = subprocess.run(["git", "-C", str(a.code or ROOT), "rev-parse", "--short", "HEAD"],
                             capture_output=True, text=True).stdout.strip() or "tree " + str(a.code)
     new = []

@@ -3,6 +3,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -41,3 +43,38 @@ def test_report_shows_a_real_capture_without_ground_truth_as_n_a(capsys):
     assert "| n/a | n/a | n/a | n/a | 31 exported | 7/31 |" in chess
     # train = prior + geometry + panoptic (1 + 2 + 3), export = the other five stages (4 + ... + 8)
     assert "| 6.0 | 30.0 | 50 % |" in chess
+
+
+def test_without_work_the_benchmark_removes_its_scratch_unless_a_capture_failed(monkeypatch, tmp_path):
+    """Without --work the captures, checkpoints and exports go to a temporary folder: removed after
+    a run (each left ~20-50 MB in /tmp), kept when a capture failed (its log.txt is named)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import end_to_end as e2e
+    finally:
+        sys.path.pop(0)
+    made = []
+
+    def mkdtemp(prefix=""):
+        made.append(tmp_path / f"{prefix}{len(made)}")
+        made[-1].mkdir()
+        return str(made[-1])
+
+    def run_all(a, names, base):
+        (base / f"{names[0]}_{a.label}").mkdir(parents=True)
+        if a.label == "broken":
+            sys.exit(f"error: capture {names[0]} failed (exit 1); see {base / 'log.txt'}")
+
+    monkeypatch.setattr(e2e.tempfile, "mkdtemp", mkdtemp)
+    monkeypatch.setattr(e2e, "run_all", run_all)
+    monkeypatch.setattr(sys, "argv", ["end_to_end.py", "--captures", "demo", "--label", "ok"])
+    e2e.main()
+    assert len(made) == 1 and not made[0].exists()
+    monkeypatch.setattr(sys, "argv", ["end_to_end.py", "--captures", "demo", "--label", "broken"])
+    with pytest.raises(SystemExit, match="failed"):
+        e2e.main()
+    assert len(made) == 2 and (made[1] / "demo_broken").is_dir()
+    keep = tmp_path / "keep"
+    monkeypatch.setattr(sys, "argv", ["end_to_end.py", "--captures", "demo", "--label", "ok", "--work", str(keep)])
+    e2e.main()
+    assert len(made) == 2 and (keep / "demo_ok").is_dir()
