@@ -13,14 +13,15 @@ import numpy as np
 
 
 def carve_free(mesh, points: np.ndarray, free_fn, pitch: float):
-    """Remove the known-free cells from closed `mesh` by an exact boolean difference with the
-    closed surface around them, so the rest of the surface keeps its shape. Cells holding observed
-    points are never removed. Returns a closed mesh (or None when nothing is left)."""
-    from .meshops import from_manifold, grid_points, occupancy_to_mesh, to_manifold
+    """Remove the known-free cells (of `pitch`, coarser past meshops.CUT_CELLS cells) from closed
+    `mesh` by an exact boolean difference with the closed surface around them, so the rest of the
+    surface keeps its shape. Cells holding observed points are never removed. Returns a closed mesh
+    (or None when nothing is left)."""
+    from .meshops import CUT_CELLS, from_manifold, grid_points, occupancy_to_mesh, to_manifold
 
     lo, hi = mesh.bounds
     # The grid reaches past the mesh so the cutter also covers the shell of boundary cells.
-    centres, shape, origin, pitch = grid_points(lo - 2 * pitch, hi + 2 * pitch, pitch)
+    centres, shape, origin, pitch = grid_points(lo - 2 * pitch, hi + 2 * pitch, pitch, max_cells=CUT_CELLS)
     free = free_fn(centres).reshape(shape)
     idx = np.clip(np.floor((points - origin) / pitch + 0.5).astype(int), 0, np.array(shape) - 1)
     free[tuple(idx.T)] = False
@@ -134,9 +135,9 @@ def check(mesh, points: np.ndarray, tolerance: float, obstacles=(), planes=(), f
            "collision_volume": float(sum(col)), "plane_penetration": depth,
            "watertight": bool(mesh.is_watertight)}
     if free_fn is not None:
-        from .meshops import grid_points, inside
+        from .meshops import CUT_CELLS, grid_points, inside
 
-        g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch or tolerance, max_cells=300_000)
+        g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch or tolerance, max_cells=CUT_CELLS)
         g = g[inside(g, mesh)]
         out["free_space_fraction"] = float(free_fn(g).mean()) if len(g) else 0.0
     return out

@@ -98,11 +98,11 @@ def seen_on_surface(points: np.ndarray, cameras, tolerance: float) -> np.ndarray
 
 def free_fraction(mesh, cameras, tolerance: float, pitch: float) -> float:
     """Share of the volume of closed `mesh` that lies in known free space (grid at `pitch`)."""
-    from .meshops import grid_points, inside
+    from .meshops import CUT_CELLS, grid_points, inside
 
     if not cameras or mesh is None:
         return 0.0
-    g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch, max_cells=300_000)
+    g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch, max_cells=CUT_CELLS)
     g = g[inside(g, mesh)]
     if len(g) == 0:
         return 0.0

@@ -174,3 +174,35 @@ def test_a_small_instance_reserves_few_tsdf_blocks_and_fuses_the_same_surface():
     meshes = [fuse_tsdf(depths, [K] * 4, c2ws, voxel_size=voxel, trunc=4 * voxel, block_count=n) for n in (20000, 256)]
     assert len(meshes[0].faces) > 1000 and len(meshes[0].faces) == len(meshes[1].faces)
     np.testing.assert_allclose(meshes[0].bounds, meshes[1].bounds, atol=1e-6)
+
+
+def test_carving_and_sealing_a_large_object_test_a_bounded_number_of_cells():
+    """Completion's cell-by-cell grids (free-space carving, handle sealing) hold at most CUT_CELLS
+    cells: a 1.6 m slab at a 5 mm voxel (2.6 M cells there) is carved on a coarser grid, its
+    known-free half still removed and its observed half kept; a small object keeps the voxel."""
+    import trimesh
+
+    from psimap.completion.constraints import carve_free
+    from psimap.completion.meshops import CUT_CELLS, seal_handles
+
+    slab = trimesh.creation.box(extents=(1.6, 0.4, 0.4))
+    asked = []
+
+    def free_fn(q):                                  # everything at x > 0.2 m was seen empty
+        asked.append(len(q))
+        return q[:, 0] > 0.2
+
+    seen = np.column_stack([np.linspace(-0.79, 0.1, 200), np.zeros(200), np.full(200, 0.2)])
+    carved = carve_free(slab, seen, free_fn, 0.005)
+    assert 0 < asked[0] <= 1.05 * CUT_CELLS                  # (each axis rounds up a cell)
+    assert carved.is_watertight and carved.bounds[1][0] == pytest.approx(0.2, abs=0.02)
+    assert carved.volume == pytest.approx(1.0 * 0.4 * 0.4, rel=0.05)
+    sealed = seal_handles(slab, 0.005)
+    assert sealed.is_watertight and sealed.volume == pytest.approx(slab.volume, rel=0.05)
+    # the pitch seal_handles used: its contour's edge is about a cell long
+    edge = float(np.median(sealed.edges_unique_length))
+    assert edge > 1.5 * 0.005 and edge < 4 * np.cbrt(1.64 * 0.44 * 0.44 / CUT_CELLS)
+    asked.clear()
+    small = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    carve_free(small, seen[:0], free_fn, 0.005)
+    assert asked[0] == pytest.approx((0.12 / 0.005) ** 3, rel=0.1)    # 24^3 cells: the voxel kept
