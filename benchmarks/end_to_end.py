@@ -225,7 +225,9 @@ def copy_chess(data: Path, frames: int) -> float:
         for p in CHESS.glob(f"frame-{i:06d}.*"):
             shutil.copy2(p, data / p.name)
     t = time.perf_counter()
-    segment_capture(data, preview=None, progress=False)
+    # force: a re-run with the same --work labels its own copy again (it stopped at the labels of
+    # the run before)
+    segment_capture(data, preview=None, progress=False, force=True)
     return time.perf_counter() - t
 
 

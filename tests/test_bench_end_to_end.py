@@ -78,3 +78,29 @@ def test_without_work_the_benchmark_removes_its_scratch_unless_a_capture_failed(
     monkeypatch.setattr(sys, "argv", ["end_to_end.py", "--captures", "demo", "--label", "ok", "--work", str(keep)])
     e2e.main()
     assert len(made) == 2 and (keep / "demo_ok").is_dir()
+
+
+def test_the_real_capture_labels_its_copy_again_when_the_work_folder_is_reused(monkeypatch, tmp_path):
+    """`--work` kept from an earlier run: the chess copy is labelled again (force), not stopped by
+    the labels of the run before ("already exist(s); pass --force")."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import end_to_end as e2e
+    finally:
+        sys.path.pop(0)
+    import psimap.segment.capture as capture
+
+    src = tmp_path / "chess"
+    src.mkdir()
+    (src / "camera-intrinsics.txt").write_text("1 0 0\n0 1 0\n0 0 1\n")
+    for i in range(0, 2 * e2e.CHESS_EVERY, e2e.CHESS_EVERY):
+        (src / f"frame-{i:06d}.pose.txt").write_text("pose")
+    calls = []
+    monkeypatch.setattr(e2e, "CHESS", src)
+    monkeypatch.setattr(capture, "segment_capture", lambda data, **kw: calls.append(kw))
+    data = tmp_path / "work" / "data"
+    for _ in range(2):
+        e2e.copy_chess(data, 2)
+    assert len(calls) == 2 and all(kw.get("force") is True for kw in calls)
+    assert sorted(p.name for p in data.iterdir()) == ["camera-intrinsics.txt", "frame-000000.pose.txt",
+                                                      f"frame-{e2e.CHESS_EVERY:06d}.pose.txt"]
