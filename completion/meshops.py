@@ -179,8 +179,8 @@ def inside(points: np.ndarray, mesh) -> np.ndarray:
 # share of `constraints.check`) hold at most this many cells: the pitch grows past the voxel for
 # large objects only (~0.65 m cube at a 1 cm voxel, ~0.38 m at 5.7 mm). At the voxel, a 1.5 m
 # fragment of a real capture (7-Scenes chess, 5.7 mm) asked 1.6 M cells of each of its six
-# candidates; carving, sealing and the booleans on their fine contours took 27 s of it, and 8
-# such objects that no method could close took 116 s of the capture's 218 s of completion.
+# candidates (22 s for the object, 11 s now), and the 9 objects no method could close took 116 s
+# of the capture's 218 s of completion (docs/export-speed.md).
 CUT_CELLS = 300_000
 
 
