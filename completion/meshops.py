@@ -184,6 +184,12 @@ def inside(points: np.ndarray, mesh) -> np.ndarray:
 CUT_CELLS = 300_000
 
 
+def capped_pitch(lo: np.ndarray, hi: np.ndarray, pitch: float, max_cells: int) -> float:
+    """`pitch`, grown so a grid over [lo, hi] holds about `max_cells` cells when it would hold more."""
+    ext = np.maximum(np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64), pitch)
+    return max(pitch, float(np.cbrt(np.prod(ext) / max_cells)))
+
+
 def grid_points(lo: np.ndarray, hi: np.ndarray, pitch: float, max_cells: int = 2_000_000):
     """Cell centres of a regular grid covering [lo, hi] (pitch grown if it would exceed max_cells).
 
@@ -192,7 +198,7 @@ def grid_points(lo: np.ndarray, hi: np.ndarray, pitch: float, max_cells: int = 2
     lo = np.asarray(lo, dtype=np.float64)
     hi = np.asarray(hi, dtype=np.float64)
     ext = np.maximum(hi - lo, pitch)
-    pitch = max(pitch, float(np.cbrt(np.prod(ext) / max_cells)))
+    pitch = capped_pitch(lo, hi, pitch, max_cells)
     shape = tuple(int(n) for n in np.maximum(np.ceil(ext / pitch).astype(int), 1))
     origin = lo + 0.5 * pitch
     axes = [origin[i] + pitch * np.arange(shape[i]) for i in range(3)]
@@ -262,7 +268,7 @@ def solids_near(meshes, box, pitch: float, max_cells: int = 2_000_000) -> list:
         return solids
     every = np.concatenate(bands)
     lo, hi = every.min(0) - margin, every.max(0) + margin
-    pitch = max(pitch, float(np.cbrt(np.prod(np.maximum(hi - lo, pitch)) / max_cells)))
+    pitch = capped_pitch(lo, hi, pitch, max_cells)
     shape = np.maximum(np.ceil((hi - lo) / pitch).astype(int), 1)
     occ = np.zeros(shape, dtype=bool)
     for pts in bands:
