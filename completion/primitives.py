@@ -64,7 +64,7 @@ def circle_fit(xy: np.ndarray):
 CIRCLE_FIT_POINTS = 3000
 
 
-def _at_most(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+def at_most(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """points [P, ...], or n of them drawn without replacement (the same n for the same input)."""
     if len(points) <= n:
         return points
@@ -127,7 +127,7 @@ def fit_cylinder(points: np.ndarray, tolerance: float, support=None):
         circ = circle_fit(local[:, :2])
         if circ is None:
             continue
-        c2, r = _robust_circle(_at_most(local[:, :2], CIRCLE_FIT_POINTS), circ, tolerance)
+        c2, r = _robust_circle(at_most(local[:, :2], CIRCLE_FIT_POINTS), circ, tolerance)
         rel = local[:, :2] - c2
         arc = 10.0 * np.unique(np.floor(np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) / 10.0)).size
         # A flat face is a circle of huge radius: demand a real arc (>= 90 deg, r <= 0.75 extent).

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .primitives import _at_most, axis_frame, circle_fit, circle_sections, principal_axes, support_level
+from .primitives import at_most, axis_frame, circle_fit, circle_sections, principal_axes, support_level
 from .support import UP
 
 _MIN_ARC_DEG = 90.0     # narrower arcs do not pin the axis down
@@ -107,7 +107,7 @@ def mirror_planes(points: np.ndarray, tolerance: float, support=None, free_fn=No
 
     from .coverage import fibonacci_directions
 
-    sub = _at_most(points, max_points, seed)
+    sub = at_most(points, max_points, seed)
     tree = cKDTree(points)
     if support is not None:
         th = np.radians(np.arange(0.0, 180.0, 5.0))
