@@ -191,23 +191,38 @@ def test_attention_projects_the_queries_not_the_surfels():
 
 def test_semantic_loss_reads_only_the_labelled_covered_pixels():
     """semantic_loss over every read pixel with the others ignored equals the cross-entropy of the
-    selected pixels (value and gradient, to float rounding); uncovered (alpha <= 0.5) and void
-    (column -1) pixels get no gradient; no pixel to read gives None."""
-    from psimap.panoptic.field import semantic_loss
+    selected pixels (value and gradients in the logits and in alpha, to float rounding), and its
+    torch reference; uncovered (alpha <= 0.5) and void (column -1) pixels get no gradient; no pixel
+    to read gives None; the ClassScores it is given (the matching's) give the same loss."""
+    from psimap.panoptic.field import ClassScores, semantic_loss, semantic_loss_reference
 
     g = torch.Generator().manual_seed(12)
-    s_px = torch.randn(400, 5, generator=g).requires_grad_(True)
-    alpha = torch.rand(400, generator=g)
-    alpha[:20] = 0.0
-    cols = torch.randint(-1, 5, (400,), generator=g)
-    loss = semantic_loss(s_px, alpha, cols)
-    ok = (cols >= 0) & (alpha > 0.5)
-    ref = F.nll_loss(torch.log_softmax(s_px[ok] / alpha[ok, None].clamp_min(1e-3), -1), cols[ok])
-    (v, ), (v_ref, ) = torch.autograd.grad(loss, s_px), torch.autograd.grad(ref, s_px)
-    assert abs(float(loss.detach()) - float(ref.detach())) <= 1e-6 * float(ref.detach())
-    assert torch.allclose(v, v_ref, rtol=1e-5, atol=1e-9)
-    assert float(v[~ok].abs().sum()) == 0.0 and float(v[ok].abs().sum()) > 0.0
+    for n_cls in (5, 11, 40):
+        s_px = (3.0 * torch.randn(400, n_cls, generator=g)).requires_grad_(True)
+        alpha = (0.2 + torch.rand(400, generator=g)).requires_grad_(True)
+        with torch.no_grad():
+            alpha[:20] = 0.0
+        cols = torch.randint(-1, n_cls, (400,), generator=g)
+        loss = semantic_loss(s_px, alpha, cols)
+        ok = (cols >= 0) & (alpha > 0.5)
+        ref = F.nll_loss(torch.log_softmax(s_px[ok] / alpha[ok, None].clamp_min(1e-3), -1), cols[ok])
+        v, v_a = torch.autograd.grad(loss, (s_px, alpha))
+        v_ref, v_a_ref = torch.autograd.grad(ref, (s_px, alpha))
+        assert abs(float(loss.detach()) - float(ref.detach())) <= 1e-6 * float(ref.detach())
+        assert torch.allclose(v, v_ref, rtol=1e-5, atol=1e-9)
+        # alpha's gradient sums (p - onehot) z over the classes: rounding relative to its largest
+        assert float((v_a - v_a_ref).abs().max()) <= 1e-5 * float(v_a_ref.abs().max())
+        assert float(v[~ok].abs().sum()) == 0.0 and float(v[ok].abs().sum()) > 0.0
+        assert float(v_a[~ok].abs().sum()) == 0.0 and float(v_a[ok].abs().sum()) > 0.0
+        ref2 = semantic_loss_reference(s_px, alpha, cols)
+        assert abs(float(loss.detach()) - float(ref2.detach())) <= 1e-6 * float(ref2.detach())
+        assert torch.allclose(torch.autograd.grad(ref2, s_px)[0], v, rtol=1e-5, atol=1e-9)
+        given = semantic_loss(s_px, alpha, cols, ClassScores.of(s_px, alpha))
+        assert float(given.detach()) == float(loss.detach())
+    s_px, alpha = s_px.detach().requires_grad_(True), alpha.detach()
+    v = torch.autograd.grad(semantic_loss(s_px, alpha, cols), s_px)[0]
     assert semantic_loss(s_px, torch.zeros(400), cols) is None
+    assert semantic_loss_reference(s_px, torch.zeros(400), cols) is None
     # a NaN logit or alpha on a pixel the loss ignores stays out of the loss and the gradient
     bad = s_px.detach().clone()
     alpha_bad = alpha.clone()
@@ -217,5 +232,5 @@ def test_semantic_loss_reads_only_the_labelled_covered_pixels():
     bad.requires_grad_(True)
     loss_bad = semantic_loss(bad, alpha_bad, cols)
     (v_bad, ) = torch.autograd.grad(loss_bad, bad)
-    assert float(loss_bad.detach()) == float(loss.detach())
+    assert float(loss_bad.detach()) == float(semantic_loss(s_px, alpha, cols).detach())
     assert bool(torch.isfinite(v_bad).all()) and torch.equal(v_bad, v)
