@@ -38,14 +38,15 @@ def attach_outliers(mesh, points: np.ndarray, tolerance: float, min_points: int 
     """Observed parts a fitted shape leaves outside (a mug's handle on a cylinder) are added back:
     each cluster of outside points, with its nearest points on the shape, becomes a convex hull
     unioned onto the shape. Returns the new closed mesh and the number of parts added."""
-    import trimesh
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    from .meshops import convex_hull, distance_to_surface, from_manifold, inside, to_manifold
+    from .meshops import (closest_points, convex_hull, distance_to_surface, from_manifold, inside,
+                          raycasting_scene, to_manifold)
 
-    far = distance_to_surface(points, mesh) > 2 * tolerance
-    far &= ~inside(points, mesh)
+    scene = raycasting_scene(mesh)          # one index for the distances, the parity and the anchors
+    far = distance_to_surface(points, mesh, scene) > 2 * tolerance
+    far &= ~inside(points, mesh, scene)
     if far.sum() < min_points:
         return mesh, 0
     out = points[far]
@@ -61,7 +62,7 @@ def attach_outliers(mesh, points: np.ndarray, tolerance: float, min_points: int 
         part = out[lab == k]
         if len(part) < min_points:
             continue
-        anchor, _, _ = trimesh.proximity.closest_point(mesh, part)
+        anchor = closest_points(part, mesh, scene)
         hull = convex_hull(np.concatenate([part, anchor]))
         if hull is not None and hull.volume > 0:        # None: a degenerate (flat) cluster
             man = man + to_manifold(hull)

@@ -64,9 +64,14 @@ def _depth_at(points: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray, np.ndarr
     u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 2])
     v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2])
     ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    d = np.zeros(len(points))
-    d[ok] = depth[v[ok].astype(np.int64), u[ok].astype(np.int64)]
-    return z, d, ok & np.isfinite(d) & (d > 0)
+    # one gather at the clipped pixel of every point (those outside read a border pixel and are
+    # invalid anyway): the masked gather and scatter took a third of the time (~13 -> 9 ms a
+    # camera at 300k points, the free-space tests of a real capture's completion)
+    flat = np.clip(v, 0, h - 1).astype(np.int64) * w + np.clip(u, 0, w - 1).astype(np.int64)
+    d = depth.ravel().take(flat)
+    ok &= np.isfinite(d) & (d > 0)
+    d[~ok] = 0.0
+    return z, d, ok
 
 
 def known_free(points: np.ndarray, cameras, tolerance: float) -> np.ndarray:

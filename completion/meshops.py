@@ -153,24 +153,39 @@ def raycasting_scene(mesh):
     return scene
 
 
-def distance_to_surface(points: np.ndarray, mesh) -> np.ndarray:
-    """Unsigned distance of points [P, 3] to the surface of `mesh`. Returns [P] float64."""
+def distance_to_surface(points: np.ndarray, mesh, scene=None) -> np.ndarray:
+    """Unsigned distance of points [P, 3] to the surface of `mesh` (scene: its raycasting_scene,
+    when the caller has built it). Returns [P] float64."""
     import open3d as o3d
 
     if len(points) == 0:
         return np.zeros(0)
-    scene = raycasting_scene(mesh)
+    scene = scene or raycasting_scene(mesh)
     return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy() \
         .astype(np.float64)
 
 
-def inside(points: np.ndarray, mesh) -> np.ndarray:
-    """Which points [P, 3] lie inside the closed `mesh` (ray parity, 3 rays). Returns [P] bool."""
+def closest_points(points: np.ndarray, mesh, scene=None) -> np.ndarray:
+    """The closest point [P, 3] on the surface of `mesh` to each of points [P, 3] (float32 precision;
+    open3d's BVH: trimesh.proximity.closest_point took ~0.3 s for a few hundred points on a 20k-face
+    mesh, most of a real capture's outlier attachment). scene: as distance_to_surface's."""
+    import open3d as o3d
+
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    scene = scene or raycasting_scene(mesh)
+    found = scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, dtype=np.float32)))
+    return found["points"].numpy().astype(np.float64)
+
+
+def inside(points: np.ndarray, mesh, scene=None) -> np.ndarray:
+    """Which points [P, 3] lie inside the closed `mesh` (ray parity, 3 rays; scene: as
+    distance_to_surface's). Returns [P] bool."""
     import open3d as o3d
 
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    scene = raycasting_scene(mesh)
+    scene = scene or raycasting_scene(mesh)
     occ = scene.compute_occupancy(o3d.core.Tensor(np.asarray(points, dtype=np.float32)), nsamples=3)
     return occ.numpy().astype(bool)
 
@@ -316,6 +331,11 @@ def sample_surface(mesh, spacing: float, max_points: int = 200_000, seed: int = 
 
 def volume_of_intersection(a, b) -> float:
     """Volume (m³) of a ∩ b for two closed meshes (0 when either is not a solid)."""
+    if a is None or b is None or len(a.faces) == 0 or len(b.faces) == 0:
+        return 0.0
+    (alo, ahi), (blo, bhi) = a.bounds, b.bounds
+    if (ahi < blo).any() or (bhi < alo).any():     # apart: no conversion nor boolean to find 0
+        return 0.0
     if not (is_solid(a) and is_solid(b)):
         return 0.0
     inter = to_manifold(a) ^ to_manifold(b)

@@ -285,6 +285,14 @@ def test_known_free_projects_points_into_depth_maps():
     K, c2w, w, h = cam
     corner = np.linalg.inv(K) @ np.array([w / 2, 0.5, 1.0]) * 0.5     # projects into the empty row
     assert not known_free((c2w[:3, :3] @ corner + c2w[:3, 3])[None], cams, 0.02)[0]
+    # a row of NaN depth says nothing either; nor does a border pixel to points just outside the image
+    depth[-1, :] = np.nan
+    cams = check_cameras([cam], [depth])
+    low = np.linalg.inv(K) @ np.array([w / 2, h - 0.5, 1.0]) * 0.5
+    out = np.linalg.inv(K) @ np.array([w + 0.5, h / 2, 1.0]) * 0.5
+    mid = np.linalg.inv(K) @ np.array([w / 2, h / 2, 1.0]) * 0.5
+    q = np.stack([c2w[:3, :3] @ p + c2w[:3, 3] for p in (low, out, mid)])
+    assert known_free(q, cams, 0.02).tolist() == [False, False, True]
 
 
 def test_completion_respects_observed_free_space():
@@ -454,6 +462,97 @@ def test_mirror_plane_found_and_rejected_by_free_space():
     assert all(abs(p[0][0]) < 0.99 for p in planes2)
 
 
+def _mirror_planes_one_by_one(points, tolerance, support=None, free_fn=None, max_points=600, seed=0):
+    """mirror_planes written as a scan: one reflection and one query per candidate plane, the first
+    best offset of each direction kept, one free-space call per candidate tested."""
+    from scipy.spatial import cKDTree
+
+    from psimap.completion.primitives import at_most
+    from psimap.completion.symmetry import mirror_directions
+
+    sub, tree = at_most(points, max_points, seed), cKDTree(points)
+    found = []
+    for n in mirror_directions(support is not None):
+        u = sub @ n
+        best = (-1.0, 0.0)
+        for d in np.linspace(u.min(), u.max(), 19)[1:-1]:
+            m = sub - 2.0 * (sub @ n - d)[:, None] * n
+            dist, _ = tree.query(m, k=1, distance_upper_bound=1.5 * tolerance)
+            if float(np.isfinite(dist).mean()) > best[0]:
+                best = (float(np.isfinite(dist).mean()), float(d))
+        found.append((best[0], n, best[1]))
+    found.sort(key=lambda f: -f[0])
+    planes = []
+    for agree, n, d in found:
+        if agree < 0.75 or len(planes) == 2:
+            break
+        if any(abs(n @ q[0]) > np.cos(np.radians(30.0)) for q in planes):
+            continue
+        if free_fn is not None and free_fn(sub - 2.0 * (sub @ n - d)[:, None] * n).mean() > 0.05:
+            continue
+        planes.append((n, d, agree))
+    return planes
+
+
+def test_mirror_planes_match_the_one_by_one_scan():
+    """The vectorised scan (every offset of a direction in one query, free-space tests in batches)
+    chooses the planes, offsets and agreements of the plain scan, ties included: coarse shapes with
+    few points, whose agreement is flat over several offsets."""
+    from psimap.completion.symmetry import mirror_planes
+
+    rng = np.random.default_rng(3)
+    # a 2 cm cube is 4 voxels: reflections about neighbouring offsets all land within 1.5 voxels
+    shapes = [trimesh.creation.box([0.02, 0.02, 0.02]), trimesh.creation.box([0.3, 0.05, 0.04]),
+              trimesh.creation.cylinder(0.03, 0.1)]
+    compared = 0
+    for k, shape in enumerate(shapes):
+        shape.apply_translation(rng.uniform(-0.05, 0.05, 3) + [0, 0, 0.05])
+        for spacing in (0.002, 0.008):
+            pts = seen_side(shape, rng.normal(size=3), spacing=spacing, seed=k)
+            for support, free in ((None, None), (TABLE[0], None), (None, lambda q: q[:, 0] < -0.02)):
+                got, _ = mirror_planes(pts, VOXEL, support=support, free_fn=free)
+                ref = _mirror_planes_one_by_one(pts, VOXEL, support=support, free_fn=free)
+                assert len(got) == len(ref)
+                for a, b in zip(got, ref):
+                    assert np.array_equal(a[0], b[0]) and a[1] == b[1] and a[2] == b[2]
+                compared += len(ref)
+    assert compared >= 10
+
+
+def test_mirror_planes_ask_free_space_for_several_candidates_at_once(monkeypatch):
+    """A small object agrees with most of its reflections: the free-space tests of the candidate
+    planes go in batches (fewer calls), and the planes chosen are those of testing one at a time."""
+    import psimap.completion.symmetry as symmetry
+
+    box = trimesh.creation.box([0.04, 0.03, 0.05])
+    box.apply_translation([0.01, 0.0, 0.025])
+    pts = seen_side(box, [0.7, -1, 0.5])
+    frees = [lambda q: q[:, 0] < 0.0, lambda q: q[:, 1] > 0.012, lambda q: (q[:, 0] + q[:, 2]) > 0.07,
+             lambda q: np.zeros(len(q), bool)]
+    tested_many = 0
+    for support in (None, TABLE[0]):
+        for free in frees:
+            runs = {}
+            for batch in (1, symmetry._FREE_BATCH):
+                monkeypatch.setattr(symmetry, "_FREE_BATCH", batch)
+                calls = []
+
+                def counted(q, free=free, calls=calls):
+                    calls.append(len(q))
+                    return free(q)
+                planes, stats = symmetry.mirror_planes(pts, VOXEL, support=support, free_fn=counted)
+                runs[batch] = (planes, stats, calls)
+            (p1, s1, c1), (p8, s8, c8) = runs[1], runs[symmetry._FREE_BATCH]
+            assert s1 == s8 and len(p1) == len(p8)
+            for a, b in zip(p1, p8):
+                assert np.array_equal(a[0], b[0]) and a[1] == b[1] and a[2] == b[2]
+            assert len(c8) <= len(c1)
+            if len(c1) >= 4:
+                tested_many += 1
+                assert len(c8) < len(c1)
+    assert tested_many >= 2          # the contradicting free spaces made many candidates be tested
+
+
 def test_directional_coverage_orders_partial_views():
     from psimap.completion.coverage import directional_coverage
 
@@ -535,3 +634,7 @@ def test_attach_outliers_never_drops_the_shape():
     assert n == 0 and out is open_cyl
     closed, n = attach_outliers(cyl, pts, 0.003)               # a closed shape gains the handle
     assert n == 1 and closed.is_watertight and closed.volume > cyl.volume
+    # the cluster is hulled with its closest points on the shape: one body bridging the 2 cm gap
+    assert len(closed.split(only_watertight=False)) == 1
+    from psimap.completion.meshops import inside
+    assert inside(np.array([[0.045, 0, 0], [0.05, 0, 0], [0.055, 0, 0]]), closed).all()
