@@ -85,7 +85,8 @@ def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray, manifolds=No
     """mesh minus every closed obstacle mesh, trimmed to the front of every plane (n, d).
     manifolds: the obstacles already converted by `to_manifold` (converted here when None).
 
-    Keeps the pieces that hold observed points (all pieces when none does). Returns trimesh or None.
+    Of the pieces left, keeps those that hold observed points and the largest (only the first piece
+    when no points are given). Returns trimesh or None.
     """
     from scipy.spatial import cKDTree
 
@@ -111,10 +112,14 @@ def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray, manifolds=No
     if len(pieces) > 1 and len(points):
         import trimesh
 
+        largest = max(q.volume for q in pieces)
         keep = []
         for p in pieces:
+            # a piece holds observed points when some point is near one of its vertices (one tree
+            # of the points asked for every piece's vertices instead was slower on chess: a few
+            # pieces of many vertices each)
             d, _ = cKDTree(p.vertices).query(points, k=1)
-            if (d <= 3 * np.sqrt(p.area / max(len(p.faces), 1)) + 1e-9).any() or p.volume >= max(q.volume for q in pieces):
+            if d.min() <= 3 * np.sqrt(p.area / max(len(p.faces), 1)) + 1e-9 or p.volume >= largest:
                 keep.append(p)
         pieces = keep
         return trimesh.util.concatenate(pieces) if len(pieces) > 1 else pieces[0]

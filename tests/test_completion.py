@@ -638,3 +638,24 @@ def test_attach_outliers_never_drops_the_shape():
     assert len(closed.split(only_watertight=False)) == 1
     from psimap.completion.meshops import inside
     assert inside(np.array([[0.045, 0, 0], [0.05, 0, 0], [0.055, 0, 0]]), closed).all()
+
+
+def test_subtract_obstacles_keeps_the_pieces_that_hold_observed_points():
+    """A bar cut by three neighbours into four pieces: the two pieces the observed points lie on
+    stay, so does the largest, and the one between them, away from every point, goes."""
+    from psimap.completion.constraints import subtract_obstacles
+    from psimap.completion.meshops import inside
+
+    bar = trimesh.creation.box([0.6, 0.1, 0.1]).subdivide_to_size(0.01)
+    slabs = []
+    for x0, x1 in ((-0.12, -0.04), (0.06, 0.10), (0.16, 0.20)):
+        slab = trimesh.creation.box([x1 - x0, 0.3, 0.3])
+        slab.apply_translation([0.5 * (x0 + x1), 0, 0])
+        slabs.append(slab)
+    pts = sample_surface(bar, 0.005)
+    seen = pts[((pts[:, 0] > 0.11) & (pts[:, 0] < 0.15)) | (pts[:, 0] > 0.21)]   # on the two end pieces
+    out = subtract_obstacles(bar, slabs, [], seen)
+    assert out is not None and out.is_watertight
+    kept = inside(np.array([[-0.2, 0, 0], [0.01, 0, 0], [0.13, 0, 0], [0.25, 0, 0]]), out)
+    assert kept.tolist() == [True, False, True, True]        # largest, between (unseen), seen, seen
+    assert abs(out.volume - (0.18 + 0.06 + 0.10) * 0.01) < 1e-6
