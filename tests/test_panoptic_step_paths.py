@@ -219,6 +219,9 @@ def test_semantic_loss_reads_only_the_labelled_covered_pixels():
         assert torch.allclose(torch.autograd.grad(ref2, s_px)[0], v, rtol=1e-5, atol=1e-9)
         given = semantic_loss(s_px, alpha, cols, ClassScores.of(s_px, alpha))
         assert float(given.detach()) == float(loss.detach())
+    # the scores live on the logits' device (a CUDA run's; "meta" checks the placement on a CPU)
+    on_meta = ClassScores.of(s_px.detach().to("meta"), alpha.detach().to("meta"))
+    assert on_meta.z.device.type == on_meta.p.device.type == "meta"
     s_px, alpha = s_px.detach().requires_grad_(True), alpha.detach()
     v = torch.autograd.grad(semantic_loss(s_px, alpha, cols), s_px)[0]
     assert semantic_loss(s_px, torch.zeros(400), cols) is None

@@ -44,7 +44,7 @@ class ClassScores:
         p_n, s_n = s_px.shape
         with torch.no_grad():
             # a transposed copy into a class-major buffer (.contiguous() of the view took 2x)
-            z = torch.empty(s_n, p_n, dtype=s_px.dtype).copy_(s_px.detach().T)
+            z = torch.empty(s_n, p_n, dtype=s_px.dtype, device=s_px.device).copy_(s_px.detach().T)
             z.div_(alpha_px.detach().clamp_min(1e-3))
             z.sub_(z.amax(0))            # amax: max(0).values with its indices took 30x as long
             p = z.exp()
@@ -83,7 +83,7 @@ class _SemanticNLL(torch.autograd.Function):
         g.mul_(w)
         if off.numel():
             g.index_fill_(1, off, 0.0)      # a NaN of an ignored pixel times 0 is still NaN
-        return torch.empty(g.shape[1], g.shape[0], dtype=g.dtype).copy_(g.T), v_alpha, None, None, None
+        return torch.empty(g.shape[1], g.shape[0], dtype=g.dtype, device=g.device).copy_(g.T), v_alpha, None, None, None
 
 
 def semantic_loss(s_px: torch.Tensor, alpha_px: torch.Tensor, cols: torch.Tensor,
