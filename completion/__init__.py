@@ -138,9 +138,8 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
                 else f"extent {extent:.4f} m < 3 voxels ({3 * tol:.4f} m)")
         return _unchanged(partial, "skipped", f"tiny partial: {what}", tolerance=tol,
                           seconds=time.perf_counter() - t0)
-    from .constraints import (attach_outliers, blocking_planes, carve_free, check, free_space_share,
-                              subtract_obstacles)
-    from .freespace import cameras_seeing, check_cameras, known_free, seen_on_surface
+    from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
+    from .freespace import cameras_seeing, check_cameras, free_space_share, known_free, seen_on_surface
     from .meshops import genus, is_solid, seal_handles, solids_near, to_manifold
     from .support import normalise_planes, planes_from_background, support_below
 
@@ -216,6 +215,8 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
                 mesh, n_parts = attach_outliers(mesh, points, tol)
                 stats["parts_added"] = n_parts
             if free_fn is not None:
+                # only the free-space share of each candidate: the whole `check` also measured a fit
+                # that the loop measures again after the constraints
                 frac = free_space_share(mesh, free_fn, tol)
                 if frac > FREE_CARVE:
                     mesh = carve_free(mesh, points, free_fn, tol)

@@ -141,17 +141,7 @@ def check(mesh, points: np.ndarray, tolerance: float, obstacles=(), planes=(), f
            "collision_volume": float(sum(col)), "plane_penetration": depth,
            "watertight": bool(mesh.is_watertight)}
     if free_fn is not None:
+        from .freespace import free_space_share
+
         out["free_space_fraction"] = free_space_share(mesh, free_fn, pitch or tolerance)
     return out
-
-
-def free_space_share(mesh, free_fn, pitch: float) -> float:
-    """Share of the cells (of `pitch`, coarser past meshops.CUT_CELLS) inside closed `mesh` that
-    free_fn says a camera saw empty: `check`'s free_space_fraction alone (the completion loop asks
-    only this of every candidate; the whole check also measured the fit, a ray-casting index and a
-    distance query the loop measures again after the constraints)."""
-    from .meshops import CUT_CELLS, grid_points, inside
-
-    g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch, max_cells=CUT_CELLS)
-    g = g[inside(g, mesh)]
-    return float(free_fn(g).mean()) if len(g) else 0.0

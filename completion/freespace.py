@@ -101,14 +101,18 @@ def seen_on_surface(points: np.ndarray, cameras, tolerance: float) -> np.ndarray
     return seen
 
 
-def free_fraction(mesh, cameras, tolerance: float, pitch: float) -> float:
-    """Share of the volume of closed `mesh` that lies in known free space (grid at `pitch`)."""
+def free_space_share(mesh, free_fn, pitch: float) -> float:
+    """Share of the cells (of `pitch`, coarser past meshops.CUT_CELLS) inside closed `mesh` that
+    free_fn (q [Q, 3] -> bool [Q]) says a camera saw empty; 0 when no cell lies inside."""
     from .meshops import CUT_CELLS, grid_points, inside
 
-    if not cameras or mesh is None:
-        return 0.0
     g, _, _, _ = grid_points(mesh.bounds[0], mesh.bounds[1], pitch, max_cells=CUT_CELLS)
     g = g[inside(g, mesh)]
-    if len(g) == 0:
+    return float(free_fn(g).mean()) if len(g) else 0.0
+
+
+def free_fraction(mesh, cameras, tolerance: float, pitch: float) -> float:
+    """Share of the volume of closed `mesh` that lies in known free space (grid at `pitch`)."""
+    if not cameras or mesh is None:
         return 0.0
-    return float(known_free(g, cameras, tolerance).mean())
+    return free_space_share(mesh, lambda q: known_free(q, cameras, tolerance), pitch)

@@ -160,7 +160,7 @@ def distance_to_surface(points: np.ndarray, mesh, scene=None) -> np.ndarray:
 
     if len(points) == 0:
         return np.zeros(0)
-    scene = scene or raycasting_scene(mesh)
+    scene = raycasting_scene(mesh) if scene is None else scene
     return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy() \
         .astype(np.float64)
 
@@ -173,7 +173,7 @@ def closest_points(points: np.ndarray, mesh, scene=None) -> np.ndarray:
 
     if len(points) == 0:
         return np.zeros((0, 3))
-    scene = scene or raycasting_scene(mesh)
+    scene = raycasting_scene(mesh) if scene is None else scene
     found = scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, dtype=np.float32)))
     return found["points"].numpy().astype(np.float64)
 
@@ -185,7 +185,7 @@ def inside(points: np.ndarray, mesh, scene=None) -> np.ndarray:
 
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    scene = scene or raycasting_scene(mesh)
+    scene = raycasting_scene(mesh) if scene is None else scene
     occ = scene.compute_occupancy(o3d.core.Tensor(np.asarray(points, dtype=np.float32)), nsamples=3)
     return occ.numpy().astype(bool)
 
