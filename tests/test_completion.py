@@ -9,7 +9,8 @@ import trimesh
 from psimap import PsimapError
 from psimap.completion import CompletionContext as Context
 from psimap.completion import CompletionResult, complete
-from psimap.completion.freespace import check_cameras, known_free
+from psimap.completion.freespace import (check_cameras, known_free, known_free_reference, seen_on_surface,
+                                         seen_on_surface_reference)
 from psimap.completion.meshops import (from_manifold, genus, is_solid, sample_surface, to_manifold,
                                        volume_of_intersection)
 from psimap.data.synthetic_shapes import solid_mug
@@ -272,7 +273,8 @@ def _depth(mesh, cam):
     return np.where(np.isfinite(t), t, 0.0).reshape(h, w)
 
 
-def test_known_free_projects_points_into_depth_maps():
+@pytest.mark.parametrize("known_free", [known_free, known_free_reference], ids=["auto", "reference"])
+def test_known_free_projects_points_into_depth_maps(known_free):
     wall = trimesh.creation.box([4, 4, 0.01])
     wall.apply_translation([0, 0, 1.005])            # a plane facing the camera at z = 1
     cam = _camera(np.zeros(3), [0, 0, 1.0])
@@ -293,6 +295,72 @@ def test_known_free_projects_points_into_depth_maps():
     mid = np.linalg.inv(K) @ np.array([w / 2, h / 2, 1.0]) * 0.5
     q = np.stack([c2w[:3, :3] @ p + c2w[:3, 3] for p in (low, out, mid)])
     assert known_free(q, cams, 0.02).tolist() == [False, False, True]
+
+
+def _random_depth_cameras(rng, n=6, w=40, h=30):
+    """Cameras around the origin looking at it, their depth maps holding 0, NaN, inf and negative
+    returns beside plausible depths."""
+    cams, depths = [], []
+    for _ in range(n):
+        eye = rng.normal(size=3)
+        eye *= rng.uniform(1.5, 3.0) / np.linalg.norm(eye)
+        K, c2w, w_, h_ = _camera(eye, rng.normal(size=3) * 0.2, w=w, h=h)
+        d = rng.uniform(0.5, 4.0, size=(h, w))
+        bad = rng.random((h, w))
+        d[bad < 0.1] = 0.0
+        d[(bad >= 0.1) & (bad < 0.15)] = np.nan
+        d[(bad >= 0.15) & (bad < 0.18)] = np.inf
+        d[(bad >= 0.18) & (bad < 0.2)] = -1.0
+        cams.append((K, c2w, w_, h_))
+        depths.append(d)
+    return check_cameras(cams, depths)
+
+
+def test_depth_tests_native_match_the_numpy_references():
+    from psimap.render.api import native_available
+
+    if not native_available():
+        pytest.skip("native module not built")
+    from psimap.render.native import depth_test
+
+    rng = np.random.default_rng(5)
+    cams = _random_depth_cameras(rng)
+    pts = [rng.normal(size=(4000, 3)) * 1.5]
+    for K, c2w, w, h, d in cams[:3]:
+        # points on pixel borders (u, v integers, up to rounding) at the observed depth, just in
+        # front of it and just behind it: the decisions where a reordered sum would flip
+        u, v = np.meshgrid(np.arange(0, w + 1, 4.0), np.arange(0, h + 1, 3.0))
+        rays = np.stack([(u.ravel() - K[0, 2]) / K[0, 0], (v.ravel() - K[1, 2]) / K[1, 1], np.ones(u.size)], 1)
+        z = np.nan_to_num(d[np.clip(v.ravel().astype(int), 0, h - 1), np.clip(u.ravel().astype(int), 0, w - 1)],
+                          nan=1.0, posinf=1.0)
+        for dz in (-0.05, -1e-12, 0.0, 1e-12, 0.05):
+            pts.append((rays * (z + dz)[:, None]) @ c2w[:3, :3].T + c2w[:3, 3])
+    pts.append(np.array([[np.nan, 0, 0], [0, np.inf, 0], [1e300, 0, 0]]))
+    pts.append(np.stack([c[1][:3, 3] for c in cams]))              # the camera centres: z = 0
+    pts = np.concatenate(pts)
+    for tol in (0.0, 0.05):
+        free, free_ref = known_free(pts, cams, tol), known_free_reference(pts, cams, tol)
+        seen, seen_ref = seen_on_surface(pts, cams, tol), seen_on_surface_reference(pts, cams, tol)
+        assert 0.1 < free.mean() < 0.9 and 0 < seen.mean() < 0.9 and (tol == 0 or seen.mean() > 0.01)
+        assert np.array_equal(free, free_ref) and np.array_equal(seen, seen_ref)
+    # the kernel skips the points already decided and counts only those it sets
+    K, c2w, _, _, d = cams[0]
+    alone = known_free_reference(pts, cams[:1], 0.05)
+    state = np.zeros(len(pts), dtype=np.uint8)
+    state[::2] = 1
+    n = depth_test(pts, c2w, K, d, 0.05, False, state)
+    assert n == int(alone[1::2].sum()) and n > 0
+    assert state[::2].all() and np.array_equal(state[1::2].astype(bool), alone[1::2])
+
+
+def test_seen_on_surface_finds_points_near_the_depth():
+    wall = trimesh.creation.box([4, 4, 0.01])
+    wall.apply_translation([0, 0, 1.005])
+    cam = _camera(np.zeros(3), [0, 0, 1.0])
+    cams = check_cameras([cam], [_depth(wall, cam)])
+    q = np.array([[0, 0, 0.995], [0.1, 0, 1.01], [0, 0, 0.9], [0, 0, 1.2], [0, 0, -1.0]])
+    for fn in (seen_on_surface, seen_on_surface_reference):
+        assert fn(q, cams, 0.02).tolist() == [True, True, False, False, False]
 
 
 def test_completion_respects_observed_free_space():

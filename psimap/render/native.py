@@ -373,3 +373,20 @@ def blend_rows(A, f: torch.Tensor) -> torch.Tensor:
     _native.blend_rows(np.asarray(A.indptr, dtype=np.int64), np.asarray(A.indices, dtype=np.int32), data, x,
                        r, v, x.shape[1], out)
     return torch.from_numpy(out)
+
+
+def depth_test(points: np.ndarray, c2w: np.ndarray, K: np.ndarray, depth: np.ndarray, tolerance: float,
+               surface: bool, state: np.ndarray) -> int:
+    """One camera's depth test of world points [Q, 3] float64 (c2w [4, 4] OpenCV, K [3, 3], depth [H,
+    W] float64, 0 / non-finite: no return): sets state [Q] uint8 to 1 where it is 0 and the camera sees
+    the point in front of its depth by more than `tolerance` (surface False) or within it (True);
+    returns the number set. psimap.completion.freespace's known_free_reference and
+    seen_on_surface_reference are the numpy forms (csrc/depth_test.cpp). On the calling thread."""
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    if depth.ndim != 2 or state.dtype != np.uint8 or not state.flags.c_contiguous:
+        raise ValueError("depth_test: depth [H, W] and state [Q] contiguous uint8")
+    h, w = depth.shape
+    return int(_native.depth_test(np.ascontiguousarray(points, dtype=np.float64),
+                                  np.ascontiguousarray(c2w, dtype=np.float64),
+                                  np.ascontiguousarray(K, dtype=np.float64), w, h, depth, float(tolerance),
+                                  int(bool(surface)), state))

@@ -13,6 +13,7 @@
 
 #include "threads.h"
 
+#include "depth_test.h"
 #include "project.h"
 #include "rasterize.h"
 
@@ -315,6 +316,26 @@ NB_MODULE(_native, m) {
         nb::arg("out"),
         "A [R, V] (CSR: indptr int64, indices int32, data float32) times f [V, C] float32 into out [R, C], each "
         "sum in the order of A's entries (scipy's).");
+    m.def(
+        "depth_test",
+        [](Array<const double> points, Array<const double> c2w, Array<const double> K, int64_t w, int64_t h,
+           Array<const double> depth, double tol, int mode, Array<uint8_t> state) {
+            const size_t n = state.size();
+            checked(points, 3 * n, "points");
+            checked(c2w, 16, "c2w");
+            checked(K, 9, "K");
+            if (w <= 0 || h <= 0) throw std::invalid_argument("psimap native: depth_test: empty image");
+            checked(depth, static_cast<size_t>(w) * static_cast<size_t>(h), "depth");
+            if (mode != 0 && mode != 1) throw std::invalid_argument("psimap native: depth_test: mode 0 or 1");
+            nb::gil_scoped_release release;   // on the calling thread: export runs one thread by policy
+            return depth_test(points.data(), static_cast<int64_t>(n), c2w.data(), K.data(), w, h, depth.data(),
+                              tol, static_cast<DepthTestMode>(mode), state.data());
+        },
+        nb::arg("points"), nb::arg("c2w"), nb::arg("K"), nb::arg("w"), nb::arg("h"), nb::arg("depth"),
+        nb::arg("tol"), nb::arg("mode"), nb::arg("state"),
+        "Points [Q, 3] float64 a camera (c2w [4, 4], K [3, 3], depth [h, w] float64) sees in front of its depth "
+        "by more than tol (mode 0) or within tol of it (mode 1): sets state [Q] uint8 to 1 where it was 0 and "
+        "the test holds; returns the number set.");
     m.attr("MAX_TOPK") = kMaxTopK;
     m.attr("TILE") = kTile;
     bind_project<float>(m, "f32");
