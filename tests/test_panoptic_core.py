@@ -392,6 +392,15 @@ def test_spawned_query_starts_from_its_surfels_features_and_wins_them():
     pts = bottle + 0.002                                    # the bottle mask's back-projected pixels
     start = f._spawn_feature(pts, pos, feat)
     assert torch.allclose(start, torch.tensor([3.0, 0, 0, 0]), atol=1e-5)
+    # the features of the surfels nearest the mask's points, not of others: the bottle's surfels
+    # told apart (feature e1), half the mask's points on the shelf's nearest corner (feature e0 + e2)
+    told = feat.clone()
+    told[50:] = torch.tensor([0.0, 1.0, 0, 0])
+    corner = int((shelf - torch.tensor([0.5, 0.5, 0.5])).norm(dim=-1).argmin())
+    told[corner] = torch.tensor([1.0, 0, 1.0, 0])
+    both = torch.cat([pts, shelf[corner] + 0.001 * torch.randn(len(pts), 3, generator=g)])
+    mixed = f._spawn_feature(both, pos, told)
+    assert torch.allclose(mixed, torch.tensor([1.0, 1.0, 1.0, 0]) / 3 ** 0.5 * 3.0, atol=1e-5), mixed
     for spawn_feat, bottle_owner in ((start, 1), (torch.tensor([0.0, 3.0, 0, 0]), 0)):
         f2 = PanopticField(56, [{"id": 1, "name": "thing", "isthing": True}],
                            InstanceQueries(q.feature.detach(), q.mean.detach(), q.cov().detach(), temperature=0.1),

@@ -495,8 +495,12 @@ class PanopticField(nn.Module):
         """
         if surfel_pos is None or surfel_feat is None or surfel_pos.shape[0] == 0:
             return None
-        near = torch.cat([torch.cdist(c, surfel_pos).argmin(-1) for c in pts.split(256)])
-        f = surfel_feat[near].mean(0)
+        from scipy.spatial import cKDTree
+
+        # a k-d tree of the visible surfels: the [256, V] distance blocks and their argmin were ~7 ms
+        # a spawn on a 640x480 real capture (125 spawns in its 240 steps)
+        _, near = cKDTree(surfel_pos.detach().double().numpy()).query(pts.detach().double().numpy(), k=1)
+        f = surfel_feat[torch.from_numpy(np.asarray(near, dtype=np.int64))].mean(0)
         norm = float(f.norm())
         if not norm > 1e-6:
             return None
