@@ -90,7 +90,7 @@ def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray, manifolds=No
     """
     from scipy.spatial import cKDTree
 
-    from .meshops import from_manifold, to_manifold
+    from .meshops import from_manifold, signed_volume, to_manifold
 
     man = to_manifold(mesh)
     for n, d in planes:
@@ -106,20 +106,26 @@ def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray, manifolds=No
     if man.is_empty():
         return None
     pieces = [from_manifold(p) for p in man.decompose()]
-    pieces = [p for p in pieces if len(p.faces) and p.volume > 0]
+    if len(pieces) == 1:
+        return pieces[0] if len(pieces[0].faces) and signed_volume(pieces[0].vertices, pieces[0].faces) > 0 else None
+    # the pieces' volumes from one triple-product sum each (trimesh's `volume` computes every mass
+    # property; most subtractions leave one piece, which needs only its sign)
+    volume = [signed_volume(p.vertices, p.faces) if len(p.faces) else 0.0 for p in pieces]
+    pieces = [p for p, v in zip(pieces, volume) if v > 0]
+    volume = [v for v in volume if v > 0]
     if not pieces:
         return None
     if len(pieces) > 1 and len(points):
         import trimesh
 
-        largest = max(q.volume for q in pieces)
+        largest = max(volume)
         keep = []
-        for p in pieces:
+        for p, v in zip(pieces, volume):
             # a piece holds observed points when some point is near one of its vertices (one tree
             # of the points asked for every piece's vertices instead was slower on chess: a few
             # pieces of many vertices each)
             d, _ = cKDTree(p.vertices).query(points, k=1)
-            if d.min() <= 3 * np.sqrt(p.area / max(len(p.faces), 1)) + 1e-9 or p.volume >= largest:
+            if d.min() <= 3 * np.sqrt(p.area / max(len(p.faces), 1)) + 1e-9 or v >= largest:
                 keep.append(p)
         pieces = keep
         return trimesh.util.concatenate(pieces) if len(pieces) > 1 else pieces[0]
