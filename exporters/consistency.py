@@ -11,7 +11,12 @@ before decimation and colliders:
   with under `min_keep` of its volume was inside the other and is skipped. Except a carved solid
   (exporters.solidify: everything no view saw through, an upper bound) yields to one built from its
   own observed surface: a table carved around the box standing on it holds the box's lower half;
-  cut from the box instead, the box hovers over the table's collider and falls;
+  cut from the box instead, the box hovers over the table's collider and falls. And a solid that
+  would swallow a smaller object whose own observed surface lies deep inside it (a shelf closed
+  as a voxel solid fills the compartment a mug stands in) yields too: a camera saw that surface,
+  so the fill is wrong there. It gives up the shared space (or, the object wholly inside, stays
+  whole: the difference would be a cavity) and its collider is built to clear the object
+  (`SceneObject.keep_clear`);
 - room-sized instances: an "object" wider than `max_extent` is not an object a robot moves (a
   merged label of many things, or furniture fused with the room) and is skipped with the reason.
 Then, while the objects are finished biggest first, each solid is cut by the colliders of the
@@ -29,6 +34,9 @@ from psimap.exporters.roles import Reason, Role
 MAX_EXTENT = 2.5
 MIN_KEEP = 0.25                 # volume fraction an object must keep after an overlap cut
 MIN_OVERLAP = 1e-7              # m^3 (0.1 cm^3): intersections smaller than this are rounding
+# another object's observed surface this deep inside a solid (and two of its voxels) says the
+# solid's fill is wrong there (holds_observed_surface)
+OBSERVED_DEPTH = 0.01
 
 
 def floor_from_background(background) -> float | None:
@@ -110,15 +118,55 @@ def make_consistent(objects, floor_z: float | None = None, *, max_extent: float 
             keeper, loser, ka, kb = big, small, a, b
             if big.solid_kind == "carved" and small.solid_kind != "carved":
                 keeper, loser, ka, kb = small, big, b, a
-            _apply_cut(loser, _to_trimesh(kb - ka), min_keep,
+            cut = _to_trimesh(kb - ka)
+            if keeper is big and not _keeps_enough(small, cut, min_keep) and holds_observed_surface(big, small):
+                # big's solid fills space where small's own surface was seen (a shelf closed as a
+                # voxel solid around the mug on its board): the fill is wrong there, big yields,
+                # and its collider must clear small too (exporters.objects)
+                yielded = _to_trimesh(a - b)
+                if _keeps_enough(big, yielded, min_keep):
+                    big.keep_clear.append(small)
+                    if float(big.mesh.volume) - float(yielded.volume) < MIN_OVERLAP:
+                        # small wholly inside: the difference is a cavity, which the solid's largest
+                        # piece (_to_trimesh) leaves out; the solid stays whole, the collider clears
+                        big.measured.repair_steps.append(
+                            f"holds {small.name} inside ({shared * 1e6:.1f} cm3): its collider keeps clear of it")
+                        continue
+                    keeper, loser, ka, kb, cut = small, big, b, a, yielded
+            _apply_cut(loser, cut, min_keep,
                        f"overlap with {keeper.name} removed ({shared * 1e6:.1f} cm3)", f"inside {keeper.name}")
             if big.role is Role.SKIPPED:
                 break
 
 
+def holds_observed_surface(solid_obj, other, share: float = 0.5, depth: float = OBSERVED_DEPTH) -> bool:
+    """Whether more than `share` of `other`'s observed surface (the vertices of its source scan)
+    lies inside solid_obj's solid deeper than `depth` and two of its voxels: a camera saw that
+    surface, so the solid cannot fill that space. A label fragment on the solid's own surface lies
+    within a voxel of it; False when `other` has no source scan."""
+    from psimap.completion.meshops import distance_to_surface, inside, raycasting_scene
+
+    src = other.source
+    pts = np.asarray(getattr(src, "vertices", np.zeros((0, 3))), np.float64)
+    if len(pts) == 0 or solid_obj.mesh is None or len(solid_obj.mesh.faces) == 0:
+        return False
+    if len(pts) > 4000:         # a fixed subsample: a share needs no more
+        pts = pts[np.linspace(0, len(pts) - 1, 4000).astype(np.int64)]
+    scene = raycasting_scene(solid_obj.mesh)
+    deep = inside(pts, solid_obj.mesh, scene)
+    if not deep.any():
+        return False
+    deep &= distance_to_surface(pts, solid_obj.mesh, scene) > max(depth, 2.0 * solid_obj.solid_pitch)
+    return bool(deep.mean() > share)
+
+
+def _keeps_enough(obj, cut, min_keep: float) -> bool:
+    return bool(len(cut.faces) and cut.is_watertight and cut.volume >= min_keep * float(obj.mesh.volume))
+
+
 def _apply_cut(obj, cut, min_keep: float, step: str, swallowed: str) -> None:
     before = float(obj.mesh.volume)
-    if len(cut.faces) == 0 or not cut.is_watertight or cut.volume < min_keep * before:
+    if not _keeps_enough(obj, cut, min_keep):
         kept = 0.0 if len(cut.faces) == 0 else float(cut.volume) / before
         obj.skip(Reason.SWALLOWED, f"{swallowed}: {kept * 100:.0f} % of its volume left after the cut")
         return

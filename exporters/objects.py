@@ -71,6 +71,9 @@ class SceneObject:
     solid_kind: str = ""                    # how (exporters.solidify): "enclosed" | "carved" | "shell" | ""
     detail: float = 0.0                     # finest detail (m) its own surfels resolve: the voxel it was fused at (0: unknown)
     support_z: float | None = None          # height of the plane it rests on (None: not resting)
+    # objects whose observed surface its solid yielded to (exporters.consistency): its collider
+    # must not enter them either
+    keep_clear: list = field(default_factory=list)
     measured: Measurements = field(default_factory=Measurements)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
 
@@ -534,6 +537,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from tqdm import tqdm
 
     from psimap.completion import CompletionContext
+    from psimap.completion.meshops import closed_convex_hull
     from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
     from psimap.exporters.environment import (add_support_slabs, clear_above_top, flatten_solid, flatten_under,
@@ -614,8 +618,11 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         hulls = {"max_hulls": STATIC_MAX_HULLS} if is_static_class(o.label, static_classes) else {}
         world = [c.mesh for c in env.colliders if c.mesh.bounds[1][2] > o.mesh.bounds[0][2] - 0.05
                  and np.all(c.mesh.bounds[0] < o.mesh.bounds[1] + 0.05) and np.all(c.mesh.bounds[1] > o.mesh.bounds[0] - 0.05)]
+        clear = [closed_convex_hull(np.asarray(t.mesh.vertices)) for t in o.keep_clear
+                 if t.role is not Role.SKIPPED and t.mesh is not None]
         finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed,
-                      obstacles=neighbour_collider_parts(o, finished) + world, **{**kw, **hulls})
+                      obstacles=neighbour_collider_parts(o, finished) + world + [c for c in clear if c is not None],
+                      **{**kw, **hulls})
         if tops.get(o.instance_id) and o.collision is not None and not o.collision.is_primitive:
             # static furniture: a flat slab is its top, its fused hulls are cut flat under it
             o.collision.parts = solid_parts(flatten_under(o.collision.parts, tops[o.instance_id])) or o.collision.parts

@@ -143,6 +143,52 @@ def test_carved_solid_yields_to_an_observed_one():
     assert any("overlap with box_2" in s for s in table.measured.repair_steps)
 
 
+def test_a_solid_yields_to_an_object_seen_inside_it():
+    # a shelf closed as a voxel solid fills its compartments; a mug stands on a board inside one,
+    # its own surface seen by the cameras: the mug is kept and the shelf gives up the space (and
+    # its collider must clear the mug too: keep_clear)
+    shelf = _obj(_box([1.0, 0.4, 1.0], [0, 0, 0.5]), 1, "shelf")
+    shelf.solid_kind, shelf.solid_pitch = "enclosed", 0.01
+    mug_solid = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=32).apply_translation([0.2, 0, 0.35])
+    mug = _obj(mug_solid, 2, "mug")
+    mug.source = mug_solid.copy()
+    v_shelf, v_mug = shelf.mesh.volume, mug.mesh.volume
+    make_consistent([mug, shelf], floor_z=0.0)
+    assert mug.role is Role.DYNAMIC and shelf.role is Role.DYNAMIC
+    assert mug.mesh.volume == pytest.approx(v_mug)
+    # wholly inside: the difference would be a cavity, so the shelf stays whole and says so
+    assert shelf.mesh.volume == pytest.approx(v_shelf) and shelf.mesh.is_watertight
+    assert shelf.measured.repair_steps[-1].startswith("holds mug_2 inside")
+    assert shelf.keep_clear == [mug] and mug.keep_clear == []
+    # the mug at the open front of the shelf (an eighth of it outside, its seen surface deep in the
+    # fill): the shelf gives up the space they share
+    front = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=64).apply_translation([0.2, 0.175, 0.35])
+    shelf = _obj(_box([1.0, 0.4, 1.0], [0, 0, 0.5]), 1, "shelf")
+    shelf.solid_kind, shelf.solid_pitch = "enclosed", 0.005
+    mug = _obj(front, 2, "mug")
+    mug.source = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=64).apply_translation([0.2, 0.15, 0.35])
+    v_mug = mug.mesh.volume
+    make_consistent([mug, shelf], floor_z=0.0)
+    assert mug.role is Role.DYNAMIC and mug.mesh.volume == pytest.approx(v_mug)
+    d, r = 0.025, 0.04                                            # the part past the front, y > 0.2
+    outside = (r * r * np.arccos(d / r) - d * np.sqrt(r * r - d * d)) * 0.1
+    assert v_shelf - shelf.mesh.volume == pytest.approx(v_mug - outside, rel=0.02) and shelf.mesh.is_watertight
+    assert "overlap with mug_2 removed" in shelf.measured.repair_steps[-1] and shelf.keep_clear == [mug]
+    # a label fragment on the solid's own top (its surface within a voxel of the shelf's): swallowed
+    shelf = _obj(_box([1.0, 0.4, 1.0], [0, 0, 0.5]), 1, "shelf")
+    shelf.solid_kind, shelf.solid_pitch = "enclosed", 0.01
+    slab = _obj(_box([0.1, 0.1, 0.008], [0.2, 0, 0.995]), 3, "book")
+    slab.source = slab.mesh.copy()
+    make_consistent([slab, shelf], floor_z=0.0)
+    assert slab.reason is Reason.SWALLOWED and slab.why.startswith("inside shelf_1")
+    assert shelf.mesh.volume == pytest.approx(v_shelf) and shelf.keep_clear == []
+    # the mug without a source scan says nothing of what was seen: swallowed as before
+    shelf = _obj(_box([1.0, 0.4, 1.0], [0, 0, 0.5]), 1, "shelf")
+    unseen = _obj(mug_solid.copy(), 2, "mug")
+    make_consistent([unseen, shelf], floor_z=0.0)
+    assert unseen.reason is Reason.SWALLOWED and shelf.keep_clear == []
+
+
 def test_largest_piece_of_a_cut_ignores_a_flat_crumb_quietly():
     # a cut left a flat crumb (both sides of a sheet: volume 0) beside the object's body: the body
     # is kept, and reading the crumb's volume prints nothing (trimesh divides by it for its centre)
