@@ -106,10 +106,8 @@ def subtract_obstacles(mesh, obstacles, planes, points: np.ndarray, manifolds=No
     if man.is_empty():
         return None
     pieces = [from_manifold(p) for p in man.decompose()]
-    if len(pieces) == 1:
-        return pieces[0] if len(pieces[0].faces) and signed_volume(pieces[0].vertices, pieces[0].faces) > 0 else None
     # the pieces' volumes from one triple-product sum each (trimesh's `volume` computes every mass
-    # property; most subtractions leave one piece, which needs only its sign)
+    # property)
     volume = [signed_volume(p.vertices, p.faces) if len(p.faces) else 0.0 for p in pieces]
     pieces = [p for p, v in zip(pieces, volume) if v > 0]
     volume = [v for v in volume if v > 0]

@@ -618,11 +618,11 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         hulls = {"max_hulls": STATIC_MAX_HULLS} if is_static_class(o.label, static_classes) else {}
         world = [c.mesh for c in env.colliders if c.mesh.bounds[1][2] > o.mesh.bounds[0][2] - 0.05
                  and np.all(c.mesh.bounds[0] < o.mesh.bounds[1] + 0.05) and np.all(c.mesh.bounds[1] > o.mesh.bounds[0] - 0.05)]
-        clear = [closed_convex_hull(np.asarray(t.mesh.vertices)) for t in o.keep_clear
-                 if t.role is not Role.SKIPPED and t.mesh is not None]
+        hulls_kept_clear = [closed_convex_hull(np.asarray(t.mesh.vertices)) for t in o.keep_clear
+                            if t.role is not Role.SKIPPED and t.mesh is not None]
+        obstacles = neighbour_collider_parts(o, finished) + world + [h for h in hulls_kept_clear if h is not None]
         finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed,
-                      obstacles=neighbour_collider_parts(o, finished) + world + [c for c in clear if c is not None],
-                      **{**kw, **hulls})
+                      obstacles=obstacles, **{**kw, **hulls})
         if tops.get(o.instance_id) and o.collision is not None and not o.collision.is_primitive:
             # static furniture: a flat slab is its top, its fused hulls are cut flat under it
             o.collision.parts = solid_parts(flatten_under(o.collision.parts, tops[o.instance_id])) or o.collision.parts
