@@ -82,9 +82,9 @@ class PanopticConfig:
     # the steps end once the labels settle: at adjustment steps (adjust_every) where, twice in a
     # row, fewer than this fraction of the thing surfels changed owning query since the previous
     # one (and no stuff class segment changed by 5 %: psimap.panoptic.fit.LabelSettle); the
-    # caller's step count stays the cap. They end too when, twice in a row, more than three times this
-    # fraction changed, fewer than in the period before but not 20 % fewer (masks that disagree
-    # between views: LabelSettle, WANDER_FLOOR). 0 = always run the cap
+    # caller's step count stays the cap. They end too when over the last two periods more than
+    # three times this fraction changed in each, falling by less than 20 % a period (masks that
+    # disagree between views: LabelSettle, WANDER_FLOOR). 0 = always run the cap
     settle_tol: float = 0.02
     # a stuff class that holds fewer than this share of the surfels (and fewer than
     # min_instance_surfels) is label noise, a few mislabelled pixels' worth (tabletop: 18 of 128k
