@@ -113,7 +113,7 @@ def support_closing(points: np.ndarray, pitch: float, support, free_fn=None, kee
     from scipy import ndimage
     from scipy.spatial import ConvexHull, Delaunay
 
-    from .meshops import grid_points, occupancy_to_mesh
+    from .meshops import CUT_CELLS, grid_points, occupancy_to_mesh
 
     lo, hi = points.min(0), points.max(0)
     if support is not None:
@@ -122,7 +122,8 @@ def support_closing(points: np.ndarray, pitch: float, support, free_fn=None, kee
         z_plane = (d - lo[:2] @ n[:2]) / n[2] if abs(n[2]) > 1e-9 else lo[2]
         lo = lo.copy()
         lo[2] = min(lo[2], float(z_plane))
-    centres, shape, origin, pitch = grid_points(lo - pitch, hi + pitch, pitch)
+    # at most CUT_CELLS cells: large furniture closes on a coarser grid (work bounded per object)
+    centres, shape, origin, pitch = grid_points(lo - pitch, hi + pitch, pitch, max_cells=CUT_CELLS)
     idx = np.clip(np.floor((points - origin) / pitch + 0.5).astype(int), 0, np.array(shape) - 1)
     if support is not None:
         n, d = support

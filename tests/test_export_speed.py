@@ -206,3 +206,23 @@ def test_carving_and_sealing_a_large_object_test_a_bounded_number_of_cells():
     small = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
     carve_free(small, seen[:0], free_fn, 0.005)
     assert asked[0] == pytest.approx((0.12 / 0.005) ** 3, rel=0.1)    # 24^3 cells: the voxel kept
+
+
+def test_support_closing_of_a_large_object_uses_a_bounded_grid():
+    """The support closing's grid (columns down to the support, at half the tolerance) holds at
+    most CUT_CELLS cells too: a 1.6 m slab's top seen at 5 mm closes on a coarser grid (a real
+    capture's furniture gave 176k-325k-face contours that every later boolean paid for), a small
+    object keeps the pitch it was given."""
+    from psimap.completion.meshops import CUT_CELLS
+    from psimap.completion.support import support_closing
+
+    floor = (np.array([0.0, 0.0, 1.0]), 0.0)
+    xs, ys = np.meshgrid(np.arange(-0.8, 0.8, 0.005), np.arange(-0.2, 0.2, 0.005))
+    top = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.4)])
+    slab = support_closing(top, 0.005, floor)
+    assert slab.is_watertight and slab.volume == pytest.approx(1.6 * 0.4 * 0.4, rel=0.05)
+    edge = float(np.median(slab.edges_unique_length))
+    assert edge > 1.5 * 0.005 and edge < 4 * np.cbrt(1.61 * 0.41 * 0.41 / CUT_CELLS)
+    small = support_closing(top[(np.abs(top[:, 0]) < 0.05) & (np.abs(top[:, 1]) < 0.05)] * [1, 1, 0.25], 0.005, floor)
+    assert small.is_watertight and small.volume == pytest.approx(0.1 * 0.1 * 0.1, rel=0.15)
+    assert float(np.median(small.edges_unique_length)) < 1.5 * 0.005
