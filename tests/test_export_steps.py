@@ -137,6 +137,50 @@ def test_repair_closes_open_bottom_and_drops_a_nonmanifold_fin():
     np.testing.assert_allclose(r.mesh.bounds, b.bounds, atol=1e-12)
 
 
+
+def test_consistent_winding_flips_the_minority_of_each_piece():
+    """exporters.repair.consistent_winding: a sphere with a fifth of its faces flipped comes back
+    exactly as drawn (each piece keeps the orientation most of its faces have), two pieces each
+    keep their own majority (one inside out stays inside out, wound consistently), a Moebius strip
+    (no consistent winding) and faces on an edge of three are left as they are; trimesh's walk
+    agrees up to each piece's orientation."""
+    from psimap.exporters.repair import consistent_winding, fix_winding
+
+    rng = np.random.default_rng(3)
+    ball = trimesh.creation.icosphere(4)
+    f = ball.faces.copy()
+    flip = rng.random(len(f)) < 0.2
+    f[flip] = f[flip][:, ::-1]
+    np.testing.assert_array_equal(consistent_winding(f), ball.faces)
+    theirs = trimesh.Trimesh(ball.vertices, f, process=False)
+    trimesh.repair.fix_winding(theirs)
+    ours = consistent_winding(f)
+    assert np.array_equal(theirs.faces, ours) or np.array_equal(theirs.faces, ours[:, ::-1])
+
+    box = _box()
+    inside_out = box.faces[:, ::-1].copy()
+    inside_out[:3] = box.faces[:3]                      # 3 of 12 faces outward: the minority
+    two = np.vstack([f, inside_out + len(ball.vertices)])
+    fixed = trimesh.Trimesh(np.vstack([ball.vertices, box.vertices + 3.0]), consistent_winding(two), process=False)
+    assert fixed.is_winding_consistent
+    np.testing.assert_array_equal(fixed.faces[:len(f)], ball.faces)
+    np.testing.assert_array_equal(fixed.faces[len(f):], box.faces[:, ::-1] + len(ball.vertices))
+
+    # a Moebius strip of 6 quads: no winding is consistent, nothing changes
+    t = np.linspace(0, 2 * np.pi, 7)[:-1]
+    ring = np.array([[np.cos(a) * (1 + s * np.cos(a / 2)), np.sin(a) * (1 + s * np.cos(a / 2)), s * np.sin(a / 2)]
+                     for a in t for s in (-0.3, 0.3)])
+    quads = [[2 * i, 2 * i + 1, 2 * ((i + 1) % 6) + 1, 2 * ((i + 1) % 6)] for i in range(5)] + [[10, 11, 0, 1]]
+    strip = np.array([[q[0], q[1], q[2]] for q in quads] + [[q[0], q[2], q[3]] for q in quads])
+    np.testing.assert_array_equal(consistent_winding(strip), strip)
+    # a fin on an edge of a closed box: that edge ties nothing, the box stays as drawn
+    fin = np.vstack([box.faces, [[box.edges_unique[0][0], box.edges_unique[0][1], 8]]])
+    np.testing.assert_array_equal(consistent_winding(fin)[:12], box.faces)
+    m = trimesh.Trimesh(ball.vertices, f, process=False)
+    fix_winding(m)
+    np.testing.assert_array_equal(m.faces, ball.faces)
+    assert consistent_winding(np.zeros((0, 3), int)).shape == (0, 3)
+
 # ---------------------------------------------------------------- decimation
 def test_decimation_probe_follows_the_error_power_law_and_its_floor():
     """next_probe: on errors that fall as a power of the face count it lands on the count that meets
