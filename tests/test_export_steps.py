@@ -138,6 +138,18 @@ def test_repair_closes_open_bottom_and_drops_a_nonmanifold_fin():
 
 
 
+def test_repair_turns_each_inside_out_body_outward():
+    """Two closed bodies, the smaller inside out: the whole has positive volume, so only the
+    per-body inversion test (trimesh's fix_inversion, multibody) turns the small one outward."""
+    big = _box()
+    small = _box(extents=[0.08, 0.08, 0.08]).apply_translation([0.5, 0, 0])
+    small.invert()
+    r = repair_mesh(trimesh.util.concatenate([big, small]))
+    assert r.ok and r.watertight
+    assert r.mesh.volume == pytest.approx(1e-3 + 0.08 ** 3, rel=1e-9)
+    assert all(body.volume > 0 for body in r.mesh.split(only_watertight=False))
+
+
 def test_consistent_winding_flips_the_minority_of_each_piece():
     """exporters.repair.consistent_winding: a sphere with a fifth of its faces flipped comes back
     exactly as drawn (each piece keeps the orientation most of its faces have), two pieces each
