@@ -222,8 +222,7 @@ def repair_mesh(mesh, *, need_volume: bool = True, min_thickness: float = 0.002,
                 steps.append("rebuilt watertight surface (fTetWild)")
     if not m.is_watertight:
         return RepairResult(None, False, False, "could not be made watertight")
-    if not m.is_winding_consistent:
-        fix_winding(m)
+    fix_winding(m)
     if m.volume < 0:
         m.invert()
         steps.append("fixed inverted orientation")

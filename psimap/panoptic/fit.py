@@ -392,8 +392,6 @@ class LabelSettle:
         self.min_stuff_share = float(min_stuff_share)
         self.periods = int(periods)
         self.calm = 0                       # settled periods in a row
-        # per compared period: (share of thing surfels that changed owner, largest stuff segment change)
-        self.changes: list[tuple[float, float]] = []
         self.reason = ""
         self.prev: tuple[torch.Tensor, torch.Tensor] | None = None
         self.history: list[dict] = []
@@ -420,12 +418,18 @@ class LabelSettle:
                              "instances_changed": owners, "queries": int(field.queries.count)})
         compared = self.tol > 0 and self.prev is not None
         calm = compared and owners < self.tol and classes < SETTLE_CLASS_TOL
-        if compared:
-            self.changes.append((owners, classes))
         self.prev = (sem, inst)
         self.calm = self.calm + 1 if calm else 0
         self.reason = "settled" if self.calm >= self.periods else "wandering" if compared and self.wandering() else ""
         return bool(self.reason)
+
+    @property
+    def changes(self) -> list[tuple[float, float]]:
+        """(share of thing surfels that changed owner, largest stuff segment change) of each
+        compared period: the history after its first entry (nothing compared with tol 0)."""
+        if self.tol <= 0:
+            return []
+        return [(h["instances_changed"], h["classes_changed"]) for h in self.history[1:]]
 
     def wandering(self) -> bool:
         """Whether the last `periods` periods wandered (WANDER_FLOOR): the churn above the floor
