@@ -312,7 +312,7 @@ def test_field_counts_frames_where_two_queries_match_different_masks():
     assert f.comatched[0, 1] == 2 and f.comatched[1, 0] == 2
     # mask_affinity 0 puts every surfel in both 3D masks (IoM 1): only the co-match evidence keeps both
     f.cfg.mask_affinity = -1.0
-    f.steps = f.born.max() + f.cfg.adjust_every
+    f.steps = f.born.max() + f.cfg.query_grace
     f.matched[:] = 5
     f.visible[:] = 5
     assert f.adjust(means) == 0
@@ -594,6 +594,24 @@ def test_rarely_matched_query_is_useless_by_default():
     f.visible = torch.tensor([154.0, 53.0])
     assert f.adjust(means) == 1
     assert torch.allclose(f.queries.mean.detach()[0], torch.full((3,), -1.0))
+
+
+def test_a_spawned_query_gets_the_seed_queries_grace_before_it_is_judged():
+    # query 1 was spawned at step 100 for a small object and has not been matched yet (its few
+    # frames not drawn): at the adjustment 40 steps later (adjust_every) the drop rules must leave
+    # it alone, as the seed queries were left alone for their first adjust_start (60) steps
+    f, means = _two_query_field(adjust_start=60, adjust_every=40)
+    f.matched = torch.tensor([50.0, 0.0])
+    f.visible = torch.tensor([60.0, 4.0])
+    f.born = torch.tensor([0.0, 100.0])
+    assert f.cfg.query_grace == 60
+    f.steps = 140
+    assert f.adjust(means) == 0 and f.queries.count == 2
+    f.steps = 180                                   # 80 steps old and still never matched: useless
+    assert f.adjust(means) == 1 and f.queries.count == 1
+    from psimap.panoptic.config import PanopticConfig
+
+    assert PanopticConfig(adjust_start=30, adjust_every=40).query_grace == 40   # at least one period
 
 
 def test_seen_on_sampled_pixels_scales_the_mask_size():

@@ -704,7 +704,7 @@ class PanopticField(nn.Module):
             return 0
         affinity = self.affinity_all(means)                                         # [N, Q]
         masks = affinity > self.cfg.mask_affinity
-        old_enough = (self.steps - self.born) >= self.cfg.adjust_every              # grace for new ones
+        old_enough = (self.steps - self.born) >= self.cfg.query_grace               # grace for new ones
         distinct = (self.comatched >= self.cfg.distinct_frames) if self.cfg.distinct_frames > 0 else None
         dup = duplicate_queries(masks, self.cfg.iom_threshold, distinct) & old_enough
         useless = useless_queries(self.matched, self.visible, self.cfg.min_match_rate) & old_enough
