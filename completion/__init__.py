@@ -38,6 +38,11 @@ PARAMETRIC_RMS = 0.5          # a parametric shape must also fit tightly: RMS <=
 # candidate with wider ones is rejected.
 MAX_GENUS = 1
 FREE_CARVE = 0.01             # carve a candidate when more than this share of it is known-free
+# A candidate the constraints cut apart no longer describes one object: a room's bottle boxed down
+# to its shelf board lost a 3 mm slab to a neighbour's solid 2.4 cm above the board; its foot
+# and its body were two pieces, the decimation kept the body and the bottle hovered, fell in the
+# settle check and was pinned static. Pieces holding this share of the volume count
+SPLIT_SHARE = 0.02
 
 
 @dataclass
@@ -140,7 +145,7 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
                           seconds=time.perf_counter() - t0)
     from .constraints import attach_outliers, blocking_planes, carve_free, check, subtract_obstacles
     from .freespace import cameras_seeing, check_cameras, free_space_share, known_free, seen_on_surface
-    from .meshops import genus, is_solid, seal_handles, solids_near, to_manifold
+    from .meshops import genus, is_solid, seal_handles, significant_pieces, solids_near, to_manifold
     from .support import normalise_planes, planes_from_background, support_below
 
     # Context is validated before any early return so malformed input always fails loudly.
@@ -214,6 +219,7 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
             if method.adds_outliers:
                 mesh, n_parts = attach_outliers(mesh, points, tol)
                 stats["parts_added"] = n_parts
+            pieces = significant_pieces(mesh, SPLIT_SHARE)      # what the constraints must not cut apart
             if free_fn is not None:
                 # only the free-space share of each candidate: the whole `check` also measured a fit
                 # that the loop measures again after the constraints
@@ -224,6 +230,9 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
                 mesh = subtract_obstacles(mesh, obstacles, blocking, points, obstacle_manifolds)
             if mesh is None or not len(mesh.faces):
                 candidates[name] = {"accepted": False, "why": "nothing left after the constraints"}
+                continue
+            if significant_pieces(mesh, SPLIT_SHARE) > max(pieces, 1):
+                candidates[name] = {"accepted": False, "why": "the constraints cut it apart"}
                 continue
             if genus(mesh) > MAX_GENUS:
                 sealed = seal_handles(mesh, tol)

@@ -304,6 +304,16 @@ def solids_near(meshes, box, pitch: float, max_cells: int = 2_000_000) -> list:
     return solids + ([band] if band is not None else [])
 
 
+def significant_pieces(mesh, share: float = 0.02) -> int:
+    """How many connected pieces of a closed mesh hold at least `share` of its volume (crumbs a
+    boolean leaves count for nothing)."""
+    if int(mesh.body_count) <= 1:
+        return int(mesh.body_count)
+    vols = np.array([abs(float(p.volume)) for p in mesh.split(only_watertight=False)])
+    total = float(vols.sum())
+    return int(np.count_nonzero(vols >= share * total)) if total > 0 else len(vols)
+
+
 def genus(mesh) -> int:
     """Handles of a closed mesh, summed over its pieces (a sphere 0, a mug 1)."""
     return int(mesh.body_count) - int(mesh.euler_number) // 2

@@ -740,6 +740,14 @@ def flatten_solid(mesh, supports, *, bump: float = 0.05):
     return mesh, steps
 
 
+def stands_on(thing, top, margin: float = 0.01, reach: float = 0.05) -> bool:
+    """Whether `thing` (trimesh) stands on the furniture `top` (Support): its bottom within `reach`
+    above the top (or below it: a fused bottom sinks in) and its plan-view centre on the top."""
+    v = np.asarray(thing.vertices, np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    return bool(abs(lo[2] - top.height) <= reach and top.contains(0.5 * (lo[:2] + hi[:2]), margin))
+
+
 def clear_above_top(mesh, top, things, *, margin: float = 0.01, tol: float = 0.01):
     """(mesh, steps): a static furniture solid with the space over its `top` (Support) where each
     of `things` (watertight trimeshes resting on that top) stands cut away, up to the thing's
@@ -751,10 +759,10 @@ def clear_above_top(mesh, top, things, *, margin: float = 0.01, tol: float = 0.0
 
     steps = []
     for t in things:
-        v = np.asarray(t.vertices, np.float64)
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        if lo[2] > top.height + 0.05 or not top.contains(0.5 * (lo[:2] + hi[:2]), margin):
+        if not stands_on(t, top, margin):
             continue
+        v = np.asarray(t.vertices, np.float64)
+        hi = v.max(axis=0)
         xy = v[:, :2]
         try:
             ring = xy[ConvexHull(xy).vertices]

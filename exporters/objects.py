@@ -540,8 +540,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from psimap.completion.meshops import closed_convex_hull
     from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
-    from psimap.exporters.environment import (add_support_slabs, clear_above_top, flatten_solid, flatten_under,
-                                              furniture_tops, static_environment, tops_under_things)
+    from psimap.exporters.environment import (add_support_slabs, flatten_solid, flatten_under, furniture_tops,
+                                              static_environment, tops_under_things)
     from psimap.exporters.collision import solid_parts
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.physics import is_static_class
@@ -597,11 +597,9 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         if o.role is not Role.SKIPPED and tops.get(o.instance_id):
             o.mesh, steps = flatten_solid(o.mesh, tops[o.instance_id])
             o.measured.repair_steps += steps
-            standing = [t.mesh for t in objs if t is not o and t.role is not Role.SKIPPED and t.mesh is not None
+            standing = [t for t in objs if t is not o and t.role is not Role.SKIPPED and t.mesh is not None
                         and not tops.get(t.instance_id)]
-            for top in tops[o.instance_id]:
-                o.mesh, steps = clear_above_top(o.mesh, top, standing)
-                o.measured.repair_steps += steps
+            clear_tops(o, tops[o.instance_id], standing)
     make_consistent(objs, floor_z)
     clock.add(timings, "consistency", t0)
     for o in objs:
@@ -646,6 +644,20 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             if bg.role is Role.SKIPPED:
                 bg = None
     return objs, bg, env
+
+
+def clear_tops(furniture: SceneObject, tops, standing: list) -> None:
+    """The space over each of a static furniture's `tops` (exporters.environment Supports) where
+    one of `standing` (SceneObjects, not furniture) stands is that thing's: cut out of the
+    furniture's solid (environment.clear_above_top), and its collider keeps clear of the thing
+    (`keep_clear`): a shelf's hulls spanned the compartment a bottle stood in (9 cm off the
+    shelf's solid) and cut half of the bottle away, which then fell off its board."""
+    from psimap.exporters.environment import clear_above_top, stands_on
+
+    for top in tops:
+        furniture.mesh, steps = clear_above_top(furniture.mesh, top, [t.mesh for t in standing])
+        furniture.measured.repair_steps += steps
+        furniture.keep_clear += [t for t in standing if stands_on(t.mesh, top) and t not in furniture.keep_clear]
 
 
 def observed_coverage(mesh, surfel_points: np.ndarray, *, tol: float, samples: int = 3000, seed: int = 0) -> float:

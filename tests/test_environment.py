@@ -277,6 +277,29 @@ def test_the_space_over_a_top_under_a_thing_is_the_things():
     assert clear_above_top(slab, top, [far])[1] == []
 
 
+def test_furniture_keeps_its_collider_clear_of_the_things_on_its_tops():
+    """The space over a top where a thing stands is the thing's for the furniture's collider too
+    (SceneObject.keep_clear, read as obstacles when the collider is built): a room shelf's hulls
+    spanned a bottle's compartment and cut half of it away. Things elsewhere (another table, the
+    floor under this one) are not kept clear of."""
+    import trimesh
+
+    from psimap.exporters.environment import furniture_tops
+    from psimap.exporters.objects import SceneObject, clear_tops
+
+    slab = trimesh.creation.box(extents=[1.2, 0.8, 0.04]).apply_translation([0, 0, 0.70])
+    top = furniture_tops(slab.subdivide_to_size(0.02), voxel=0.005)[0]
+    table = SceneObject(1, "table", slab.copy())
+    ball = SceneObject(2, "ball", trimesh.creation.icosphere(3, radius=0.12).apply_translation([0.2, 0.1, 0.84]))
+    far = SceneObject(3, "box", trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([3.0, 0.0, 0.77]))
+    under = SceneObject(4, "box", trimesh.creation.box(extents=[0.2, 0.2, 0.2]).apply_translation([0.0, 0.0, 0.1]))
+    sunk = SceneObject(5, "mug", trimesh.creation.box(extents=[0.08, 0.08, 0.1]).apply_translation([-0.3, 0, 0.74]))
+    clear_tops(table, [top], [ball, far, under, sunk])
+    assert table.keep_clear == [ball, sunk]
+    clear_tops(table, [top], [ball])                                   # listed once
+    assert table.keep_clear == [ball, sunk]
+
+
 # ---- the static world's speed-ups give the plain computation's floats (issue #20) ------------------
 def _plain_split(points, areas, *, cell, min_area, depth=0):
     """split_footprint as first written: every cut's two sides measured from scratch, each side's
