@@ -16,7 +16,8 @@ before decimation and colliders:
   as a voxel solid fills the compartment a mug stands in) yields too: a camera saw that surface,
   so the fill is wrong there. It gives up the shared space (or, the object wholly inside, stays
   whole: the difference would be a cavity) and its collider is built to clear the object
-  (`SceneObject.keep_clear`);
+  (`SceneObject.keep_clear`; static furniture keeps its collider clear of every thing standing on
+  one of its tops too, `exporters.objects.clear_tops`);
 - room-sized instances: an "object" wider than `max_extent` is not an object a robot moves (a
   merged label of many things, or furniture fused with the room) and is skipped with the reason.
 Then, while the objects are finished biggest first, each solid is cut by the colliders of the
