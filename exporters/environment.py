@@ -741,11 +741,13 @@ def flatten_solid(mesh, supports, *, bump: float = 0.05):
 
 
 def stands_on(thing, top, margin: float = 0.01, reach: float = 0.05) -> bool:
-    """Whether `thing` (trimesh) stands on the furniture `top` (Support): its bottom within `reach`
-    above the top (or below it: a fused bottom sinks in) and its plan-view centre on the top."""
+    """Whether `thing` (trimesh) stands on the furniture `top` (Support): its bottom at most `reach`
+    above the top (or below it: a fused bottom sinks in), its top above it, and its plan-view
+    centre on the top (a box on the floor under a table does not stand on the table)."""
     v = np.asarray(thing.vertices, np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
-    return bool(abs(lo[2] - top.height) <= reach and top.contains(0.5 * (lo[:2] + hi[:2]), margin))
+    return bool(lo[2] <= top.height + reach and hi[2] > top.height
+                and top.contains(0.5 * (lo[:2] + hi[:2]), margin))
 
 
 def clear_above_top(mesh, top, things, *, margin: float = 0.01, tol: float = 0.01):
