@@ -51,10 +51,11 @@ class PanopticConfig:
     # then every this many steps; the settle rule compares the labels at these steps. 40, not 60
     # (2026-11-29): panoptic-only over 6 view orders of the demo, tabletop and room end-to-end
     # checkpoints, 30 % fewer steps (demo 230 -> 160, tabletop 220 -> 153, room 250 -> 173 on
-    # average) for the same PQ (demo 0.804 -> 0.810, tabletop 0.984 -> 0.983, room 0.905 -> 0.901,
-    # each run within the small-object lottery); more adjustments, not fewer checks of one. The
-    # first adjustment stays at 60: at 40 too (adjust_start) two of six demo orders fell to PQ
-    # 0.573 / 0.745 (queries of small objects dropped before their frames had been drawn)
+    # average) for the same PQ (demo 0.804 -> 0.810, tabletop 0.984 -> 0.983; room 0.905 -> 0.889,
+    # its mug lost in 3 of 6 orders against 2: docs/architecture.md); more adjustments, not fewer
+    # checks of one. The first adjustment stays at 60: at 40 too (adjust_start) two of six demo
+    # orders fell to PQ 0.573 / 0.745 (queries of small objects dropped before their frames had
+    # been drawn)
     adjust_every: int = 40
     # useless: matched in fewer of the frames that see it. Real objects' queries were matched in
     # >= 0.56 of them at 15 % noise (seeds 0-2); at 0.1 a query on a cabinet's border, matched in
