@@ -219,7 +219,7 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
             if method.adds_outliers:
                 mesh, n_parts = attach_outliers(mesh, points, tol)
                 stats["parts_added"] = n_parts
-            pieces = significant_pieces(mesh, SPLIT_SHARE)      # what the constraints must not cut apart
+            unconstrained = mesh                                # what the constraints must not cut apart
             if free_fn is not None:
                 # only the free-space share of each candidate: the whole `check` also measured a fit
                 # that the loop measures again after the constraints
@@ -231,7 +231,8 @@ def complete(partial, context: CompletionContext | Mapping | None = None) -> Com
             if mesh is None or not len(mesh.faces):
                 candidates[name] = {"accepted": False, "why": "nothing left after the constraints"}
                 continue
-            if significant_pieces(mesh, SPLIT_SHARE) > max(pieces, 1):
+            if mesh is not unconstrained and significant_pieces(mesh, SPLIT_SHARE) > max(
+                    significant_pieces(unconstrained, SPLIT_SHARE), 1):
                 candidates[name] = {"accepted": False, "why": "the constraints cut it apart"}
                 continue
             if genus(mesh) > MAX_GENUS:
