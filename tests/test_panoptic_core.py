@@ -320,6 +320,39 @@ def test_field_counts_frames_where_two_queries_match_different_masks():
     assert f.adjust(means) == 1
 
 
+@pytest.mark.parametrize("feature, drawn, counted", [((0.0, 0.6), 0.81, 1), ((0.5, 0.16), 0.30, 0)])
+def test_a_co_match_counts_only_when_both_queries_draw_their_masks(feature, drawn, counted):
+    # two queries over two one-pixel masks: query 0 draws mask 1 (p ~1), query 1 is matched to mask
+    # 2, which it draws at p 0.81 or 0.30 (the rest goes to query 0). Only the first frame is
+    # evidence that the two are different objects: the assignment also hands a leftover mask to a
+    # query that hardly draws it (a bottle's split-off query at p 0.02-0.05 on the tabletop, whose
+    # "distinct" pair was never dropped as a fragment)
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
+
+    q = InstanceQueries(torch.eye(2, 4), torch.zeros(2, 3), torch.eye(3).expand(2, 3, 3).clone(),
+                        temperature=0.1)
+    f = PanopticField(2, [{"id": 1, "name": "thing", "isthing": True}], q,
+                      PanopticConfig(feat_dim=4, topk=2))
+    with torch.no_grad():
+        f.instance.zero_()
+        f.instance[0, 0] = 5.0
+        f.instance[1, :2] = torch.tensor(feature)
+    means = torch.tensor([[-0.1, 0, 0], [0.1, 0, 0]])
+
+    def render(idx, blocks, topk):              # one pixel per surfel, fully opaque
+        from types import SimpleNamespace
+
+        return SimpleNamespace(features=torch.cat(blocks, -1).unsqueeze(0), alpha=torch.ones(1, 2))
+
+    with torch.no_grad():
+        p = q.distribution(f.instance, means)
+    assert float(p[1, 1]) == pytest.approx(drawn, abs=0.01)
+    f.losses(render, means, torch.arange(2), torch.tensor([[1, 2]]), None, torch.eye(3), torch.eye(4), 2, 1)
+    assert f.matched.tolist() == [1.0, 1.0]                  # matched either way
+    assert f.comatched[0, 1] == counted and f.comatched[1, 0] == counted
+
+
 def test_smooth_instances_fixes_border_flips_and_keeps_small_objects():
     from psimap.panoptic.field import smooth_instances
 
@@ -612,6 +645,36 @@ def test_a_spawned_query_gets_the_seed_queries_grace_before_it_is_judged():
     from psimap.panoptic.config import PanopticConfig
 
     assert PanopticConfig(adjust_start=30, adjust_every=40).query_grace == 40   # at least one period
+
+
+@pytest.mark.parametrize("step_sigma", [0.1, 0.0])
+def test_a_small_querys_centre_moves_in_steps_of_its_own_size(step_sigma):
+    # Adam moves a parameter ~lr a step whatever its gradient: a mug's query (sigma 3 cm) pushed by
+    # a few pixels of one frame drifted as far as a shelf's (sigma 30 cm), two of its own sigmas
+    # in 25 steps, and lost its mug. Its centre (and the off-diagonal of its Cholesky factor, in
+    # metres too) now moves lr x sigma / query_step_sigma; the large query's lr as before
+    from psimap.panoptic.config import PanopticConfig
+    from psimap.panoptic.field import PanopticField
+
+    cov = torch.stack([torch.eye(3) * 0.3 ** 2, torch.eye(3) * 0.03 ** 2])
+    q = InstanceQueries(torch.eye(2, 4), torch.zeros(2, 3), cov)
+    f = PanopticField(8, [{"id": 1, "name": "thing", "isthing": True}], q,
+                      PanopticConfig(feat_dim=4, lr_query=0.01, query_step_sigma=step_sigma))
+    f.zero_grad()
+    for p in q.parameters():
+        p.grad = torch.zeros_like(p)
+    q.mean.grad = torch.ones(2, 3)
+    q.offdiag.grad = torch.ones(2, 3)
+    q.log_diag.grad = torch.ones(2, 3)
+    log_before = q.log_diag.detach().clone()
+    f.step()
+    moved = -q.mean.detach()[:, 0]                  # Adam's first step: lr x sign(gradient)
+    bent = -q.offdiag.detach()[:, 0]
+    assert moved[0] == pytest.approx(0.01, rel=1e-3) and bent[0] == pytest.approx(0.01, rel=1e-3)
+    small = 0.01 * (0.03 / step_sigma if step_sigma > 0 else 1.0)
+    assert moved[1] == pytest.approx(small, rel=1e-3) and bent[1] == pytest.approx(small, rel=1e-3)
+    # the log axes are scale-free: every query's take Adam's step
+    assert torch.allclose(log_before - q.log_diag.detach(), torch.full((2, 3), 0.01), rtol=1e-3)
 
 
 def test_seen_on_sampled_pixels_scales_the_mask_size():

@@ -43,6 +43,12 @@ class PanopticConfig:
     w_sem: float = 1.0              # lambda_4
     lr_surfel: float = 0.02         # Adam lr of per-surfel features
     lr_query: float = 0.01          # Adam lr of queries and attention weights
+    # a query's centre moves lr_query x min(1, sigma / this) a step (sigma: the geometric mean of its
+    # Gaussian's axes, metres; PanopticField._step_queries): Adam's ~lr step a centre took whatever
+    # its gradient drifted a mug's query (sigma 4.8 cm) 7-9 cm off its mug in 25 steps; with the
+    # co-match rule (field.losses) the room kept its mug in 5 of 6 view orders, not 3 (PQ 0.889 ->
+    # 0.913), the demo and tabletop unchanged (docs/architecture.md). 0 = lr_query for every query
+    query_step_sigma: float = 0.1
     reject_dice: float = 0.95       # matches with Dice cost above this are not supervised
     # class term of the matching cost (0 = Dice + BCE only). Off by default: at 15 % noise (160x120,
     # seeds 0 / 1) weight 1 gave PQ 0.647 / 0.757 against 0.675 / 0.755 without it (RESULTS.md)

@@ -310,7 +310,8 @@ class PanopticField(nn.Module):
         # [Q, Q] frames where two queries drew inside one 2D mask / inside two different masks
         self.same = torch.zeros(queries.count, queries.count)
         self.apart = torch.zeros(queries.count, queries.count)
-        self.comatched = torch.zeros(queries.count, queries.count)   # both matched in one frame
+        # frames where both were matched (to different masks), each drawing its mask (p > 0.5 on it)
+        self.comatched = torch.zeros(queries.count, queries.count)
         # [Q, S] frames in which each query was matched to a mask of each class column
         self.class_votes = torch.zeros(queries.count, self.class_ids.numel())
         self.born = torch.zeros(queries.count)        # step a query was created (pruning grace)
@@ -387,12 +388,35 @@ class PanopticField(nn.Module):
             self._step_surfels()
         else:
             self._surfel_step = background.submit(self._step_surfels)
-        self.opt_query.step()
+        self._step_queries()
         self.steps += 1
         self._affinity_at = None
         if self._pending:
             self.wait_step()        # a spawn re-creates both optimizers
         self._spawn_pending()
+
+    def _step_queries(self) -> None:
+        """Adam's step of the queries, with each centre's move scaled by its query's size.
+
+        Adam moves every parameter by about lr a step whatever the size of its gradient, so a
+        query's centre moved ~lr_query metres a step for queries of every size: a mug's query
+        (sigma 4.8 cm) pushed once by 8 pixels of a frame drifted 9 cm (two sigmas) over the next
+        25 steps on the update's momentum alone and lost its mug to the shelf's query. A centre
+        moves by Adam's step times min(1, sigma / query_step_sigma), sigma = the geometric mean of
+        its Gaussian's axes: the same drift in units of its own size below query_step_sigma. The
+        off-diagonal of its Cholesky factor is in metres too and is scaled alike; the log-diagonal
+        is scale-free and keeps Adam's step."""
+        ref = self.cfg.query_step_sigma
+        if ref <= 0 or self.queries.count == 0:
+            self.opt_query.step()
+            return
+        q = self.queries
+        before = [p.detach().clone() for p in (q.mean, q.offdiag)]
+        scale = (q.log_diag.detach().mean(-1).exp() / ref).clamp(max=1.0)[:, None]    # [Q, 1]
+        self.opt_query.step()
+        with torch.no_grad():
+            for p, b in zip((q.mean, q.offdiag), before):
+                p.copy_(b + (p - b) * scale)
 
     def _step_surfels(self) -> None:
         for p in (self.semantic, self.instance):          # [N, S] and [N, F]: every surfel
@@ -600,7 +624,16 @@ class PanopticField(nn.Module):
                     l_ins = matched_mask_loss(prob, target, match, window=window, matched=matched)
                 self.matched[match.query_idx] += 1
                 mq = match.query_idx
-                self.comatched[mq[:, None], mq[None, :]] += 1.0
+                with torch.no_grad():
+                    # both matched in this frame, each drawing its mask (mean probability > 0.5 on
+                    # it): a match the query hardly draws (the assignment hands a leftover mask to
+                    # a query at p 0.02-0.05) says nothing of two objects, and such matches of a
+                    # bottle's split-off query made it "distinct" from the bottle's (tabletop: 38
+                    # frames co-matched against 15 seen apart)
+                    t_m = target.index_select(0, match.mask_idx)
+                    drawn = (prob.index_select(0, mq) * t_m).sum(-1) / t_m.sum(-1).clamp_min(1.0)
+                    sure = mq[drawn > 0.5]
+                self.comatched[sure[:, None], sure[None, :]] += 1.0
                 mc = mask_cls[match.mask_idx]
                 if s > 0 and bool((mc >= 0).any()):
                     ok = mc >= 0
