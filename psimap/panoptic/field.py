@@ -407,7 +407,8 @@ class PanopticField(nn.Module):
         off-diagonal of its Cholesky factor is in metres too and is scaled alike; the log-diagonal
         is scale-free and keeps Adam's step.
 
-        A query never matched yet (`query_hold_until_matched`) keeps its centre, and the centre's
+        With `query_hold_until_matched` (off by default: an 8-frame test demo lost an instance
+        whose seed needed the drift to reach it), a query never matched yet keeps its centre, and the centre's
         Adam moments, where its seed masks put it: in another view order the mug's seed query,
         never matched in its first 23 steps, was pushed 7.8 cm (1.7 of its sigmas) off the mug
         through the softmax by the losses of the shelf's and the box's queries. Its covariance and
