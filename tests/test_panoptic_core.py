@@ -678,8 +678,8 @@ def test_a_small_querys_centre_moves_in_steps_of_its_own_size(step_sigma):
     assert torch.allclose(log_before - q.log_diag.detach(), torch.full((2, 3), 0.01), rtol=1e-3)
 
 
-@pytest.mark.parametrize("hold", [True, False])
-def test_a_query_never_matched_keeps_its_centre_until_its_first_match(hold):
+@pytest.mark.parametrize("hold, step_sigma", [(True, 0.1), (True, 0.0), (False, 0.1)])
+def test_a_query_never_matched_keeps_its_centre_until_its_first_match(hold, step_sigma):
     # one frame whose only mask is query 0's: query 1 is not matched, yet the softmax hands its
     # centre a gradient (its probability on query 0's pixels). Until its first match that centre,
     # and its Adam moments, stay where its seed masks put it (a mug's query, never matched in its
@@ -691,7 +691,8 @@ def test_a_query_never_matched_keeps_its_centre_until_its_first_match(hold):
     q = InstanceQueries(torch.eye(2, 4), torch.tensor([[-0.05, 0, 0], [0.05, 0, 0]]),
                         (torch.eye(3) * 0.04).expand(2, 3, 3).clone(), temperature=0.1)
     f = PanopticField(2, [{"id": 1, "name": "thing", "isthing": True}], q,
-                      PanopticConfig(feat_dim=4, topk=2, query_hold_until_matched=hold))
+                      PanopticConfig(feat_dim=4, topk=2, query_hold_until_matched=hold,
+                                     query_step_sigma=step_sigma))
     with torch.no_grad():
         f.instance.zero_()
         f.instance[:, 0] = torch.tensor([2.0, 0.5])
