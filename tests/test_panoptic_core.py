@@ -667,7 +667,6 @@ def test_a_small_querys_centre_moves_in_steps_of_its_own_size(step_sigma):
     q.offdiag.grad = torch.ones(2, 3)
     q.log_diag.grad = torch.ones(2, 3)
     log_before = q.log_diag.detach().clone()
-    f.matched[:] = 1                                # both matched before (a never-matched centre holds)
     f.step()
     moved = -q.mean.detach()[:, 0]                  # Adam's first step: lr x sign(gradient)
     bent = -q.offdiag.detach()[:, 0]
@@ -676,53 +675,6 @@ def test_a_small_querys_centre_moves_in_steps_of_its_own_size(step_sigma):
     assert moved[1] == pytest.approx(small, rel=1e-3) and bent[1] == pytest.approx(small, rel=1e-3)
     # the log axes are scale-free: every query's take Adam's step
     assert torch.allclose(log_before - q.log_diag.detach(), torch.full((2, 3), 0.01), rtol=1e-3)
-
-
-@pytest.mark.parametrize("hold, step_sigma", [(True, 0.1), (True, 0.0), (False, 0.1)])
-def test_a_query_never_matched_keeps_its_centre_until_its_first_match(hold, step_sigma):
-    # one frame whose only mask is query 0's: query 1 is not matched, yet the softmax hands its
-    # centre a gradient (its probability on query 0's pixels). Until its first match that centre,
-    # and its Adam moments, stay where its seed masks put it (a mug's query, never matched in its
-    # first 23 steps, was pushed 1.7 of its sigmas off its mug so); its covariance and feature
-    # still step. Once matched (the frame's mask given to it), it moves like any other
-    from psimap.panoptic.config import PanopticConfig
-    from psimap.panoptic.field import PanopticField
-
-    q = InstanceQueries(torch.eye(2, 4), torch.tensor([[-0.05, 0, 0], [0.05, 0, 0]]),
-                        (torch.eye(3) * 0.04).expand(2, 3, 3).clone(), temperature=0.1)
-    f = PanopticField(2, [{"id": 1, "name": "thing", "isthing": True}], q,
-                      PanopticConfig(feat_dim=4, topk=2, query_hold_until_matched=hold,
-                                     query_step_sigma=step_sigma))
-    with torch.no_grad():
-        f.instance.zero_()
-        f.instance[:, 0] = torch.tensor([2.0, 0.5])
-    means = torch.tensor([[-0.1, 0, 0], [0.1, 0, 0]])
-
-    def render(idx, blocks, topk):
-        from types import SimpleNamespace
-
-        return SimpleNamespace(features=torch.cat(blocks, -1).unsqueeze(0), alpha=torch.ones(1, 2))
-
-    def step(frame):
-        f.zero_grad()
-        before = {n: p.detach().clone() for n, p in q.named_parameters() if p.dim() == 2}
-        l_ins, l_sem, _ = f.losses(render, means, torch.arange(2), frame, None,
-                                   torch.eye(3), torch.eye(4), 2, 1)
-        (l_ins + l_sem).backward()
-        pushed = float(q.mean.grad[1].abs().sum())
-        f.step()
-        return pushed, {n: float((p.detach() - before[n])[1].abs().sum())
-                        for n, p in q.named_parameters() if p.dim() == 2}
-
-    for _ in range(3):
-        pushed, moved = step(torch.tensor([[1, 1]]))          # query 0's mask only
-        assert f.matched.tolist()[1] == 0 and pushed > 0
-        assert (moved["mean"] == 0.0) == hold
-        assert moved["log_diag"] > 1e-4 and moved["feature"] > 1e-4
-    if hold:
-        assert float(f.opt_query.state[q.mean]["exp_avg"][1].abs().sum()) == 0.0
-    _, moved = step(torch.tensor([[1, 2]]))                   # a mask of its own: matched
-    assert f.matched.tolist()[1] == 1 and moved["mean"] > 1e-5
 
 
 def test_seen_on_sampled_pixels_scales_the_mask_size():

@@ -49,14 +49,6 @@ class PanopticConfig:
     # co-match rule (field.losses) the room kept its mug in 5 of 6 view orders, not 3 (PQ 0.889 ->
     # 0.913), the demo and tabletop unchanged (docs/architecture.md). 0 = lr_query for every query
     query_step_sigma: float = 0.1
-    # a query never matched yet keeps its centre (and the centre's Adam moments) where its seed
-    # masks put it: the other queries' losses pushed a mug's seed query, never matched in its first
-    # 23 steps, 1.7 of its sigmas off the mug (PanopticField._step_queries). On: six view orders,
-    # room PQ 0.913 -> 0.929 (no order loses the mug), demo 0.811 -> 0.812, tabletop 0.982 -> 0.983;
-    # but an 8-frame 64x48 demo (tests/test_cli_generate_demo.py) lost one of its two instances
-    # (PQ 0.51 -> 0.34): seeds off their objects there needed the drift to reach them. Off until
-    # that is understood
-    query_hold_until_matched: bool = False
     reject_dice: float = 0.95       # matches with Dice cost above this are not supervised
     # class term of the matching cost (0 = Dice + BCE only). Off by default: at 15 % noise (160x120,
     # seeds 0 / 1) weight 1 gave PQ 0.647 / 0.757 against 0.675 / 0.755 without it (RESULTS.md)

@@ -405,39 +405,18 @@ class PanopticField(nn.Module):
         moves by Adam's step times min(1, sigma / query_step_sigma), sigma = the geometric mean of
         its Gaussian's axes: the same drift in units of its own size below query_step_sigma. The
         off-diagonal of its Cholesky factor is in metres too and is scaled alike; the log-diagonal
-        is scale-free and keeps Adam's step.
-
-        With `query_hold_until_matched` (off by default: an 8-frame test demo lost an instance
-        whose seed needed the drift to reach it), a query never matched yet keeps its centre, and
-        the centre's Adam moments, where its seed masks put it: in another view order the mug's seed query,
-        never matched in its first 23 steps, was pushed 7.8 cm (1.7 of its sigmas) off the mug
-        through the softmax by the losses of the shelf's and the box's queries. Its covariance and
-        feature still step. Holding every unmatched centre at every step (not only before the first
-        match) kept the mug too, but on labels that disagree between views (`psimap segment`'s)
-        the centres then never settled and every run went to the step cap."""
+        is scale-free and keeps Adam's step."""
         ref = self.cfg.query_step_sigma
-        hold = self.cfg.query_hold_until_matched
-        if self.queries.count == 0 or (ref <= 0 and not hold):
+        if ref <= 0 or self.queries.count == 0:
             self.opt_query.step()
             return
         q = self.queries
         before = [p.detach().clone() for p in (q.mean, q.offdiag)]
-        scale = ((q.log_diag.detach().mean(-1).exp() / ref).clamp(max=1.0)[:, None] if ref > 0
-                 else torch.ones(q.count, 1))                                           # [Q, 1]
-        idle = (self.matched == 0) if hold else None
-        moments = {}
-        if idle is not None and bool(idle.any()):
-            moments = {k: v[idle].clone() for k, v in self.opt_query.state.get(q.mean, {}).items()
-                       if v.dim() == 2}
+        scale = (q.log_diag.detach().mean(-1).exp() / ref).clamp(max=1.0)[:, None]    # [Q, 1]
         self.opt_query.step()
         with torch.no_grad():
             for p, b in zip((q.mean, q.offdiag), before):
                 p.copy_(b + (p - b) * scale)
-            if idle is not None and bool(idle.any()):
-                q.mean[idle] = before[0][idle]
-                for k, v in self.opt_query.state[q.mean].items():
-                    if v.dim() == 2:
-                        v[idle] = moments[k] if k in moments else 0.0
 
     def _step_surfels(self) -> None:
         for p in (self.semantic, self.instance):          # [N, S] and [N, F]: every surfel
