@@ -9,6 +9,9 @@ what is measured is the export, not training), seen like a hand-held capture: an
   unlabelled-desk  the same desk with semantic 0 (void): an unlabelled support
   y-up, z-down, colmap   stuff-desk turned into the frame of a phone (Y up), a robot base (z down)
                    and an arbitrary SfM frame: they must export the same objects with the same roles
+  unseen-top       the desk's things on a counter whose top is not in the map (what a black, glossy
+                   top leaves of a depth capture), seen by a robot's camera 2 cm below its edge, so
+                   no view looks into the open counter either: they stand on nothing observed
   ycb-table        the six real YCB scans (../shared/data/ycb, skipped when absent) upright on a
                    stuff table, classes named after them; their xml files give the real masses
   room             a generated room (psimap.data.synthetic.generate, seed 0): its ground-truth
@@ -45,7 +48,7 @@ from _results import markdown_table, save_plot, write_section  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 YCB = ROOT.parent / "shared" / "data" / "ycb"
 YCB_NAMES = ("banana", "bowl", "cracker_box", "mug", "mustard_bottle", "power_drill")
-SCENES = ("stuff-desk", "unlabelled-desk", "y-up", "z-down", "colmap", "ycb-table", "room")
+SCENES = ("stuff-desk", "unlabelled-desk", "y-up", "z-down", "colmap", "unseen-top", "ycb-table", "room")
 KEY = "static-world"
 
 # The capture frames of the turned scenes: R takes the Z-up world to the capture's (R @ [0,0,1] is
@@ -147,6 +150,29 @@ def desk_meshes(labelled: bool = True):
     colors = [(0.45, 0.45, 0.42), (0.82, 0.8, 0.74), (0.55, 0.36, 0.2), (0.85, 0.2, 0.1),
               (0.12, 0.3, 0.85), (0.92, 0.88, 0.2), (0.2, 0.7, 0.3)]
     return meshes, iids, sids, colors
+
+
+def unseen_top_scene(width: int, height: int, views: int):
+    """The desk's four things on a counter (stuff `table`, the desk's footprint, floor to top) whose
+    top face is not in the map, seen from an arc of views 2 cm below the top's edge."""
+    import trimesh
+
+    from psimap.camera import look_at
+    from psimap.scene import scene_from_meshes
+
+    meshes, iids, sids, colors = desk_meshes(True)
+    counter = trimesh.creation.box(extents=[1.2, 0.6, DESK_TOP]).apply_translation([0, 0.3, DESK_TOP / 2])
+    counter.update_faces(counter.face_normals[:, 2] < 0.9)
+    counter.remove_unreferenced_vertices()
+    meshes[2] = counter
+    eye = DESK_TOP - 0.02
+    f = 0.83 * width
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    angles = np.linspace(-0.9, 0.9, views)
+    c2w = [look_at([1.3 * np.sin(a), 0.3 - 1.3 * np.cos(a), eye], [0.0, 0.3, eye - 0.05]) for a in angles]
+    cams = {"K": np.stack([K] * views), "c2w": np.stack(c2w), "width": int(width), "height": int(height),
+            "names": [f"view_{i:02d}" for i in range(views)]}
+    return scene_from_meshes(meshes, iids, sids, desk_classes(), cams, colors=colors)
 
 
 def desk_scene(labelled: bool, width: int, height: int, views: int):
@@ -262,6 +288,8 @@ def build(name: str, work: Path, *, width: int, height: int, views: int, cache: 
         R = colmap_rotation() if name == "colmap" else FRAMES[name]
         ref = build("stuff-desk", work, width=width, height=height, views=views, cache=cache)
         built = Built(ref.scene.rotated(R), ref.things, rotation=R)
+    elif name == "unseen-top":
+        built = Built(unseen_top_scene(width, height, views), 4)
     elif name == "ycb-table":
         built = Built(ycb_scene(width, height, views), len(YCB_NAMES), {n: real_mass(n) for n in YCB_NAMES},
                       {n: YCB / n / "textured.obj" for n in YCB_NAMES})
@@ -324,7 +352,8 @@ def measure(name: str, built: Built, report: dict, out_dir: Path, wall: float, c
            "colliders": env.get("colliders", {}), "floor_z": env.get("floor_z"),
            "faces_mean": float(np.mean(faces)), "faces_max": int(np.max(faces)),
            "faces_dynamic_max": max([o["faces_after"] for o in objs if not o["static"]] or [0]),
-           "wall_s": wall, "cpu_s": cpu, "masses": []}
+           "wall_s": wall, "cpu_s": cpu, "masses": [],
+           "unseen": sorted(u["thing"] for u in env.get("unseen_supports", []))}
     for o in objs:
         real = built.real_mass.get(o["class"])
         if real is None:
@@ -376,7 +405,8 @@ def _colliders(c: dict) -> str:
 def tables(rows: list[dict], comparisons: dict) -> str:
     scene_rows = [[r["scene"], f"{r['found']} / {r['in_scene']}", f"{r['dynamic']} / {r['movable']}", r["pinned"],
                    r["little_evidence"], r["skipped"], r["static_class"],
-                   ", ".join(r["moved"]) or "-", "passed" if r["check_passed"] else "FAILED",
+                   ", ".join(r["moved"]) or "-", ", ".join(r["unseen"]) or "-",
+                   "passed" if r["check_passed"] else "FAILED",
                    "passed" if r["passed"] else "FAILED", f"{r['up_error_deg']:.1f}"]
                   for r in rows]
     world_rows = [[r["scene"], f"{r['env_error_mm']:.1f}", f"{r['env_mean_mm']:.1f}", f"{r['env_budget_mm']:.0f}",
@@ -387,7 +417,8 @@ def tables(rows: list[dict], comparisons: dict) -> str:
     parts = ["Things (found / in the scene), dynamic (of those not static by class), and what came "
              "of the others:", "",
              markdown_table(["scene", "found", "dynamic", "pinned", "little evidence", "skipped",
-                             "static furniture", "moved or fell in the check", "check", "outcome",
+                             "static furniture", "moved or fell in the check",
+                             "on a slab no camera saw (environment.unseen_supports)", "check", "outcome",
                              "up error °"], scene_rows), "",
              "The static world (p95 / mean distance of the observed background to its colliders, the "
              "share within the budget, the colliders by role), faces of the exported visual meshes "
@@ -505,7 +536,8 @@ def headlines(rows: list[dict]) -> list[tuple[str, str]]:
 def print_row(r: dict) -> None:
     print(f"{r['scene']}: {r['dynamic']}/{r['movable']} dynamic, pinned {r['pinned']}, little evidence "
           f"{r['little_evidence']}, skipped {r['skipped']}, furniture {r['static_class']}; check "
-          f"{'passed' if r['check_passed'] else 'FAILED'}, moved {r['moved'] or '-'}; up error "
+          f"{'passed' if r['check_passed'] else 'FAILED'}, moved {r['moved'] or '-'}, on unseen supports "
+          f"{r['unseen'] or '-'}; up error "
           f"{r['up_error_deg']:.1f} deg; world error {r['env_error_mm']:.1f} mm ({_colliders(r['colliders'])}); "
           f"faces mean {r['faces_mean']:.0f} max {r['faces_max']}; {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU",
           flush=True)

@@ -147,6 +147,21 @@ def seen_on_surface_reference(points: np.ndarray, cameras, tolerance: float) -> 
     return seen
 
 
+def free_votes(points: np.ndarray, cameras, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(free [Q] int, valid [Q] int) of points [Q, 3]: how many of `cameras` (check_cameras) see each
+    point empty (in front of their depth by more than `tolerance`), and how many have a valid depth
+    at its pixel at all. A ratio over the cameras, unlike `known_free`'s "any": a single view through
+    a pinhole of a reconstructed surface does not make the space behind it empty."""
+    points = np.asarray(points, dtype=np.float64)
+    free = np.zeros(len(points), dtype=np.int64)
+    valid = np.zeros(len(points), dtype=np.int64)
+    for cam in cameras:
+        z, d, ok = _depth_at(points, cam)
+        free += ok & (z < d - tolerance)
+        valid += ok
+    return free, valid
+
+
 def free_space_share(mesh, free_fn, pitch: float) -> float:
     """Share of the cells (of `pitch`, coarser past meshops.CUT_CELLS) inside closed `mesh` that
     free_fn (q [Q, 3] -> bool [Q]) says a camera saw empty; 0 when no cell lies inside."""

@@ -110,6 +110,7 @@ class StaticEnvironment:
     mean_error_m: float = 0.0
     coverage: float = 1.0
     budget_m: float = 0.0
+    unseen: list = field(default_factory=list)      # [UnseenSupport] among supports (add_unseen_supports)
 
     def support_under(self, xy, z_bottom: float, *, max_gap: float = 0.05, margin: float = 0.03):
         """`support_under(self.supports, ...)`."""
@@ -122,7 +123,9 @@ class StaticEnvironment:
         return {"floor_z": self.floor_z, "floor_observed": self.floor_observed, "colliders": roles,
                 "supports": [{"height": s.height, "area_m2": s.area} for s in self.supports],
                 "error_m": self.error_m, "mean_error_m": self.mean_error_m, "coverage": self.coverage,
-                "budget_m": self.budget_m}
+                "budget_m": self.budget_m,
+                "unseen_supports": [{"height": u.support.height, "area_m2": u.support.area,
+                                     "free_share": u.free_share, "thing": u.name} for u in self.unseen]}
 
 
 # ---- footprints --------------------------------------------------------------------------------
@@ -722,6 +725,171 @@ def add_support_slabs(env: StaticEnvironment, supports, owner: str, thickness: f
     for k, s in enumerate(sorted(supports, key=lambda s: (s.height, -s.area))):
         env.supports.append(s)
         env.colliders.append(StaticCollider(f"{owner}_top_{k}", "support",
+                                            _prism(s.polygon, s.height - thickness, s.height), s.height, s.area))
+
+
+# ---- supports no camera saw ---------------------------------------------------------------------
+# A black or glossy counter top returns no depth to a structured-light or time-of-flight camera, and
+# a table top seen edge-on (a robot's camera at table height) fuses to no up-facing surface: the
+# things on it are found, nothing is under them, and the settle check pinned them (7-Scenes chess:
+# 8 of 13 pinned things stood on its black counter, 65-92 cm above the floor). A thing is taken to
+# stand on such a support when no support is known under it, no observed surface lies within
+# UNSEEN_BAND below its bottom over its footprint, and the space under and around its bottom was
+# not seen empty by the cameras (at most UNSEEN_MAX_FREE of their views of it): a thing hanging on
+# a wall or a fragment floating in the room has its surroundings seen empty and stays the settle
+# check's to pin.
+UNSEEN_BAND = 0.05
+UNSEEN_MAX_FREE = 0.2
+UNSEEN_PROBES = (0.02, 0.05)        # m below the bottom: inside the slab a support would be
+UNSEEN_NEIGHBOUR = 0.5              # m: things this close (plan view) at one level mark one surface
+UNSEEN_MIN_THINGS = 2
+
+
+@dataclass
+class UnseenSupport:
+    """A support inferred under a thing (`thing`: its index in the list asked about) whose bottom
+    no camera saw standing on anything: `support` (height = its bottom), `free_share` the share of
+    the cameras' views of its probe points that saw them empty; `name`: the thing's object name."""
+
+    support: Support
+    thing: int
+    free_share: float
+    name: str = ""
+
+
+def _grow_polygon(poly: np.ndarray, by: float) -> np.ndarray:
+    """Convex plan polygon [k, 2] grown by `by` (m): the hull of its corners moved 16 ways."""
+    a = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
+    ring = by * np.stack([np.cos(a), np.sin(a)], 1)
+    return _hull_2d((np.asarray(poly, np.float64)[:, None, :] + ring[None]).reshape(-1, 2))
+
+
+def _in_polygon(poly: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    from matplotlib.path import Path as MplPath
+
+    if len(poly) < 3 or len(xy) == 0:
+        return np.zeros(len(xy), bool)
+    return MplPath(poly).contains_points(np.asarray(xy, np.float64))
+
+
+def _plan_grid(poly: np.ndarray, max_points: int = 400) -> np.ndarray:
+    """Plan points [n, 2] on a regular grid inside convex polygon [k, 2] (at most ~max_points)."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    step = max(float(np.sqrt(_polygon_area(poly) / max_points)), 0.003)
+    xs, ys = np.arange(lo[0] + step / 2, hi[0], step), np.arange(lo[1] + step / 2, hi[1], step)
+    g = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+    g = g[_in_polygon(poly, g)]
+    return g if len(g) else poly.mean(axis=0, keepdims=True)
+
+
+def unseen_supports(things, known, surfaces, free_votes, *, floor_z: float | None = None, band: float = UNSEEN_BAND,
+                    max_free: float = UNSEEN_MAX_FREE, merge: float = UNSEEN_BAND, neighbour: float = UNSEEN_NEIGHBOUR,
+                    min_things: int = UNSEEN_MIN_THINGS, thickness: float = THICKNESS, why: dict | None = None) -> list:
+    """[UnseenSupport] under `things` (trimesh meshes of the movable things, world Z-up; None or
+    empty ones are passed over) that stand on a support no camera saw.
+
+    known: [Support] of the static world (background levels, furniture tops); floor_z: the floor
+    (a thing within `band` above it stands on it); surfaces: (centres [F, 3], areas [F], normals
+    [F, 3], owner [F]) of every observed surface, owner = the index of the thing it belongs to or
+    -1; free_votes(points [Q, 3]) -> (free [Q], valid [Q]): how many cameras saw each point empty
+    and how many had a depth at its pixel (completion.freespace.free_votes).
+
+    A thing's support is unseen when none of `known` lies under its plan-view centre within 5 cm of
+    its bottom, the up-facing observed surface (not its own) within `band` below its bottom over
+    its footprint grown by a quarter of its size is less than a quarter of the footprint's area,
+    and at most `max_free` of the views of the probe points (that grown footprint, UNSEEN_PROBES
+    below its bottom) saw them empty. Its slab (`thickness` deep) is the plan hull of the probes
+    most views did not see empty; none is made when observed surface of anything else lies inside
+    it (a chair's slats under a piece of its back rail labelled a thing), nor unless `min_things`
+    such things stand within `merge` of one height, each within `neighbour` (plan view, between
+    bounding boxes) of another: one thing over unseen space may be a fragment of furniture
+    (7-Scenes chess: two pieces of chairs behind the table, 1.1 m apart; the things on its black
+    counter stand in rows).
+    why: receives {thing index: the reason it got no slab} for the things passed over."""
+    why = {} if why is None else why
+    centres, areas, normals, owner = surfaces
+    centres = np.asarray(centres, np.float64).reshape(-1, 3)
+    areas, owner = np.asarray(areas, np.float64), np.asarray(owner)
+    up = np.asarray(normals, np.float64).reshape(-1, 3)[:, 2] >= np.cos(np.radians(45.0))
+    found = []                                  # (bottom z, slab polygon, thing index, free share)
+    for i, t in enumerate(things):
+        if t is None or len(getattr(t, "vertices", [])) < 4:
+            continue
+        v = np.asarray(t.vertices, np.float64)
+        z0 = float(v[:, 2].min())
+        if floor_z is not None and z0 <= floor_z + band:
+            why[i] = "on the floor"
+            continue
+        plan = _hull_2d(v[:, :2])
+        area = _polygon_area(plan)
+        if area <= 0:
+            continue
+        centre = v[v[:, 2] <= z0 + 0.01, :2].mean(axis=0)
+        if support_under(known, centre, z0) is not None:
+            why[i] = "on a known support"
+            continue
+        grown = _grow_polygon(plan, max(0.02, 0.25 * np.sqrt(area)))
+        near = up & (owner != i) & (centres[:, 2] >= z0 - band) & (centres[:, 2] <= z0 + 0.01)
+        near[near] = _in_polygon(grown, centres[near, :2])
+        if areas[near].sum() >= 0.25 * area:
+            why[i] = f"observed surface under it ({areas[near].sum() / area:.0%} of its footprint)"
+            continue
+        xy = _plan_grid(grown)
+        probes = np.concatenate([np.column_stack([xy, np.full(len(xy), z0 - d)]) for d in UNSEEN_PROBES])
+        free, valid = (np.asarray(a, np.float64) for a in free_votes(probes))
+        share = float(free.sum() / max(valid.sum(), 1.0))
+        if share > max_free:
+            why[i] = f"the space under it seen empty ({share:.0%} of its views)"
+            continue
+        poly = _hull_2d(xy[(2 * free <= valid)[:len(xy)]])
+        if len(poly) < 3 or not _in_polygon(poly, centre[None])[0]:
+            why[i] = "the unseen space does not reach under its centre"
+            continue
+        inside = (owner != i) & (centres[:, 2] > z0 - thickness) & (centres[:, 2] < z0 - 0.01)
+        inside[inside] = _in_polygon(poly, centres[inside, :2])
+        if areas[inside].sum() > 0.05 * _polygon_area(poly):
+            why[i] = "observed surface inside the slab"
+            continue
+        found.append((z0, poly, i, share))
+    # one thing over unseen space may be a fragment of furniture labelled a thing (a chair's back
+    # rail behind a table); things standing at one level near each other mark a surface
+    near = [[j for j, g in enumerate(found) if abs(g[0] - f[0]) <= merge and j != k
+             and _box_gap(f[1], g[1]) <= neighbour] for k, f in enumerate(found)]
+    group = list(range(len(found)))
+    for k in range(len(found)):
+        for j in near[k]:
+            a, b = _root(group, k), _root(group, j)
+            group[max(a, b)] = min(a, b)
+    sizes = np.bincount([_root(group, k) for k in range(len(found))], minlength=len(found))
+    out = []
+    for k, (z0, poly, i, share) in enumerate(found):
+        if sizes[_root(group, k)] < min_things:
+            why[i] = f"no other thing stands at its level within {neighbour:.1f} m"
+            continue
+        out.append(UnseenSupport(Support(z0, poly, _polygon_area(poly)), i, share))
+    return out
+
+
+def _root(parent: list, k: int) -> int:
+    while parent[k] != k:
+        k = parent[k]
+    return k
+
+
+def _box_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Plan-view distance (m) between the bounding boxes of polygons a [k, 2] and b [m, 2]."""
+    gap = np.maximum(0.0, np.maximum(a.min(axis=0) - b.max(axis=0), b.min(axis=0) - a.max(axis=0)))
+    return float(np.linalg.norm(gap))
+
+
+def add_unseen_supports(env: StaticEnvironment, unseen, thickness: float = THICKNESS) -> None:
+    """Add `unseen` ([UnseenSupport]) to env: a support things rest on, and a slab collider
+    `unseen_support_<k>` under each (the same set for every writer)."""
+    for k, u in enumerate(unseen):
+        s = u.support
+        env.supports.append(s)
+        env.unseen.append(u)
+        env.colliders.append(StaticCollider(f"unseen_support_{k}", "support",
                                             _prism(s.polygon, s.height - thickness, s.height), s.height, s.area))
 
 

@@ -540,8 +540,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from psimap.completion.meshops import closed_convex_hull
     from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
-    from psimap.exporters.environment import (add_support_slabs, flatten_solid, flatten_under, furniture_tops,
-                                              static_environment, tops_under_things)
+    from psimap.exporters.environment import (add_support_slabs, add_unseen_supports, flatten_solid, flatten_under,
+                                              furniture_tops, static_environment, tops_under_things)
     from psimap.exporters.collision import solid_parts
     from psimap.exporters.instance_meshes import instance_meshes
     from psimap.exporters.physics import is_static_class
@@ -563,6 +563,10 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     for item in inst.things:
         if item.instance_id in tops:
             tops[item.instance_id] += tops_under_things(item.mesh, env.supports + tops[item.instance_id], movable)
+    # supports no camera saw (a black counter top), under things standing on nothing observed
+    unseen, rests_on = things_on_unseen_supports(inst, env.supports + [s for ts in tops.values() for s in ts],
+                                                 set(tops), env.floor_z)
+    add_unseen_supports(env, unseen)
     clock.add(timings, "environment", t0)
     objs, views_of, surfels_of = [], {}, {}
     for item in tqdm(inst.things, desc="object solids", disable=not progress, leave=False):
@@ -587,6 +591,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                                   surfel_points=surfel_points, carve_views=inst.views, resolution=inst.voxel_size,
                                   open_under=max((t.height for t in tops.get(item.instance_id, [])), default=None)))
         objs[-1].surfel_count = int(np.count_nonzero(members))
+        if item.instance_id in rests_on:
+            objs[-1].measured.repair_steps.append(rests_on[item.instance_id])
         objs[-1].detail = float(getattr(item.mesh, "voxel_size", 0.0) or 0.0)
         surfels_of[item.instance_id] = surfel_points
         if item.dropped_surfels:
@@ -634,6 +640,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         with clock.step(timings, "environment"):
             env = static_environment(background, voxel=inst.voxel_size, exclude_points=sf["means"][iid > 0],
                                      seed=seed)
+        add_unseen_supports(env, unseen)
     for o in objs:
         if o.role is not Role.SKIPPED and tops.get(o.instance_id):
             add_support_slabs(env, tops[o.instance_id], o.name)
@@ -644,6 +651,43 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             if bg.role is Role.SKIPPED:
                 bg = None
     return objs, bg, env
+
+
+def things_on_unseen_supports(inst, known, static_ids, floor_z: float | None) -> tuple[list, dict]:
+    """([exporters.environment.UnseenSupport], {instance id: repair step}) of the movable things of
+    `inst` (instance_meshes: not in static_ids, the static furniture) that stand on a support no
+    camera saw (environment.unseen_supports: nothing observed under them, the space there not seen
+    empty by the rendered views' depth). known: the supports found so far."""
+    from psimap.completion.freespace import cameras_seeing, check_cameras, free_votes
+    from psimap.exporters.environment import unseen_supports
+
+    items = [t for t in inst.things if t.instance_id not in static_ids and t.mesh is not None and len(t.mesh.faces)]
+    if not items or not inst.views:
+        return [], {}
+    cams = check_cameras([(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in inst.views],
+                         [v.depth for v in inst.views])
+    tol = max(0.01, 1.5 * inst.voxel_size)
+
+    def votes(q):
+        return free_votes(q, cameras_seeing(cams, q.min(axis=0), q.max(axis=0)), tol)
+
+    index = {id(t): i for i, t in enumerate(items)}         # static furniture: -2, its own owner
+    parts = [(inst.background, -1)] + [(t.mesh, index.get(id(t), -2)) for t in inst.things]
+    parts = [(m, k) for m, k in parts if m is not None and len(m.faces)]
+    surfaces = (np.concatenate([np.asarray(m.triangles_center, np.float64) for m, _ in parts]),
+                np.concatenate([np.asarray(m.area_faces, np.float64) for m, _ in parts]),
+                np.concatenate([np.asarray(m.face_normals, np.float64) for m, _ in parts]),
+                np.concatenate([np.full(len(m.faces), k) for m, k in parts]))
+    unseen = unseen_supports([t.mesh for t in items], known, surfaces, votes, floor_z=floor_z)
+    rests_on = {}
+    for u in unseen:
+        item = items[u.thing]
+        u.name = SceneObject(item.instance_id, item.label, None).name
+        rests_on[item.instance_id] = (
+            f"stands on a support no camera saw (a slab inferred at {u.support.height:.3f} m, "
+            f"{u.support.area * 1e4:.0f} cm2: nothing observed under it, {u.free_share:.0%} of the views of "
+            "the space around its bottom saw it empty)")
+    return unseen, rests_on
 
 
 def clear_tops(furniture: SceneObject, tops, standing: list) -> None:
