@@ -63,6 +63,10 @@ def cli_export(opts) -> int:
         print(f"static world: floor at {env['floor_z']:.3f} m" + ("" if env["floor_observed"] else " (not seen: a "
               "safety plane)") + ", colliders " + ", ".join(f"{n} {r}" for r, n in sorted(env["colliders"].items()))
               + f"; 95 % of its surface within {env['error_m'] * 100:.1f} cm of them")
+        unseen = env.get("unseen_supports") or []
+        if unseen:
+            print(f"  {len(unseen)} slab(s) inferred under things standing on a support no camera saw: "
+                  + ", ".join(u["thing"] for u in unseen))
     n, skipped = len(report["objects"]), len(report["skipped"])
     print(f"exported {n} object(s) to {opts.out} ({opts.format}); skipped {skipped}")
     for o in report["objects"]:

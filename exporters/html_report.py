@@ -110,8 +110,11 @@ def render_html(report: dict, thumbs: dict[str, bytes]) -> str:
     env = report.get("environment")
     if env:
         cols = ", ".join(f"{n} {escape(k)}" for k, n in sorted((env.get("colliders") or {}).items()))
+        unseen = env.get("unseen_supports") or []
         parts.append(f'<p class="small">static world: floor {"seen" if env.get("floor_observed") else "not seen"}'
-                     f"; colliders {cols}</p>")
+                     f"; colliders {cols}"
+                     + (f"; slabs inferred under {escape(', '.join(u['thing'] for u in unseen))} (standing on a "
+                        "support no camera saw)" if unseen else "") + "</p>")
     if prev.get("image"):
         parts.append(f'<img class="preview" src="{escape(prev["image"])}" alt="the scene before and after '
                      f'the settle check, objects tinted by role">')

@@ -171,11 +171,19 @@ def counter_checkpoint(tmp_path_factory, *, top_seen: bool):
 
 @pytest.fixture(scope="module")
 def black_counter_export(tmp_path_factory):
+    import contextlib
+    import io
+
     from psimap.cli import main
 
     out = tmp_path_factory.mktemp("export") / "counter"
     ckpt = counter_checkpoint(tmp_path_factory, top_seen=False)
-    assert main(["export", str(ckpt), "--format", "all", "--no-preview", "--completion", "none", "--out", str(out)]) == 0
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        rc = main(["export", str(ckpt), "--format", "all", "--no-preview", "--completion", "none", "--out", str(out)])
+    assert rc == 0, printed.getvalue()
+    # the console says it, naming the things
+    assert "2 slab(s) inferred under things standing on a support no camera saw: " in printed.getvalue()
     return out
 
 
@@ -224,3 +232,15 @@ def test_the_same_counter_seen_from_above_infers_nothing(tmp_path_factory):
     assert rep["environment"]["unseen_supports"] == [], rep["environment"]
     assert rep["outcome"]["dynamic"] == 2 and any(abs(s["height"] - COUNTER_TOP) < 0.015
                                                   for s in rep["environment"]["supports"]), rep["outcome"]
+
+
+def test_report_html_names_the_things_on_inferred_slabs(black_counter_export, tmp_path):
+    import json
+
+    from psimap.exporters.html_report import write_html
+
+    rep = json.loads((black_counter_export / "report.json").read_text())
+    write_html(tmp_path / "report.html", rep, {})
+    html = (tmp_path / "report.html").read_text()
+    assert "slabs inferred under box_11, can_12 (standing on a support no camera saw)" in html \
+        or "slabs inferred under can_12, box_11 (standing on a support no camera saw)" in html, html[:2000]
