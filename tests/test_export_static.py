@@ -217,3 +217,24 @@ def test_one_role_maps_onto_the_report_keys():
     assert o.role is Role.SKIPPED and [object_entry(o, {})[k] for k in keys] == [False, None, "repair: flat"]
     o.make_dynamic()
     assert (o.role, o.reason, o.why) == (Role.DYNAMIC, None, "")
+
+
+def test_a_thing_on_a_falling_thing_is_pinned_only_if_it_still_moves_on_its_pinned_support(tmp_path):
+    """A board with nothing under it (a chair seat whose legs were not reconstructed) and a box on
+    it: both fall in the first settle, but only the board is pinned; on the pinned board the box
+    rests and stays dynamic (both were pinned in one round before)."""
+    from psimap.exporters.objects import build_object
+    from psimap.exporters.pipeline import export_scene
+
+    ramp, _ = _box_on_ramp()
+    board = build_object(trimesh.creation.box(extents=[0.4, 0.4, 0.04]).apply_translation([-0.8, 0.0, 0.32]),
+                         "board", 3, completion="none")
+    box = build_object(trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([-0.8, 0.0, 0.39]),
+                       "box", 4, completion="none")
+    r = export_scene([ramp, board, box], tmp_path / "out", "mjcf")
+    c = r["check"]
+    assert c["passed"], c["failures"]
+    assert list(c["pinned"]) == ["board_3"], c["pinned"]
+    e = {o["name"]: o for o in r["objects"]}
+    assert not e["box_4"]["static"] and c["drift"]["box_4"] < 0.005, c["drift"]
+    assert r["outcome"]["dynamic"] == 1 and r["outcome"]["pinned"] == 1
