@@ -592,7 +592,12 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
                                   open_under=max((t.height for t in tops.get(item.instance_id, [])), default=None)))
         objs[-1].surfel_count = int(np.count_nonzero(members))
         if item.instance_id in rests_on:
-            objs[-1].measured.repair_steps.append(rests_on[item.instance_id])
+            u = rests_on[item.instance_id]
+            u.name = objs[-1].name
+            objs[-1].measured.repair_steps.append(
+                f"stands on a support no camera saw (a slab inferred at {u.support.height:.3f} m, "
+                f"{u.support.area * 1e4:.0f} cm2: nothing observed under it, {u.free_share:.0%} of the views of "
+                "the space around its bottom saw it empty)")
         objs[-1].detail = float(getattr(item.mesh, "voxel_size", 0.0) or 0.0)
         surfels_of[item.instance_id] = surfel_points
         if item.dropped_surfels:
@@ -654,7 +659,7 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
 
 
 def things_on_unseen_supports(inst, known, static_ids, floor_z: float | None) -> tuple[list, dict]:
-    """([exporters.environment.UnseenSupport], {instance id: repair step}) of the movable things of
+    """([exporters.environment.UnseenSupport], the same by instance id) of the movable things of
     `inst` (instance_meshes: not in static_ids, the static furniture) that stand on a support no
     camera saw (environment.unseen_supports: nothing observed under them, the space there not seen
     empty by the rendered views' depth). known: the supports found so far."""
@@ -679,15 +684,7 @@ def things_on_unseen_supports(inst, known, static_ids, floor_z: float | None) ->
                 np.concatenate([np.asarray(m.face_normals, np.float64) for m, _ in parts]),
                 np.concatenate([np.full(len(m.faces), k) for m, k in parts]))
     unseen = unseen_supports([t.mesh for t in items], known, surfaces, votes, floor_z=floor_z)
-    rests_on = {}
-    for u in unseen:
-        item = items[u.thing]
-        u.name = SceneObject(item.instance_id, item.label, None).name
-        rests_on[item.instance_id] = (
-            f"stands on a support no camera saw (a slab inferred at {u.support.height:.3f} m, "
-            f"{u.support.area * 1e4:.0f} cm2: nothing observed under it, {u.free_share:.0%} of the views of "
-            "the space around its bottom saw it empty)")
-    return unseen, rests_on
+    return unseen, {items[u.thing].instance_id: u for u in unseen}
 
 
 def clear_tops(furniture: SceneObject, tops, standing: list) -> None:
