@@ -829,10 +829,10 @@ def unseen_supports(things, known, surfaces, free_votes, *, floor_z: float | Non
             why[i] = "on a known support"
             continue
         grown = _grow_polygon(plan, max(0.02, 0.25 * np.sqrt(area)))
-        near = up & (owner != i) & (centres[:, 2] >= z0 - band) & (centres[:, 2] <= z0 + 0.01)
-        near[near] = _in_polygon(grown, centres[near, :2])
-        if areas[near].sum() >= 0.25 * area:
-            why[i] = f"observed surface under it ({areas[near].sum() / area:.0%} of its footprint)"
+        below = up & (owner != i) & (centres[:, 2] >= z0 - band) & (centres[:, 2] <= z0 + 0.01)
+        below[below] = _in_polygon(grown, centres[below, :2])
+        if areas[below].sum() >= 0.25 * area:
+            why[i] = f"observed surface under it ({areas[below].sum() / area:.0%} of its footprint)"
             continue
         xy = _plan_grid(grown)
         probes = np.concatenate([np.column_stack([xy, np.full(len(xy), z0 - d)]) for d in UNSEEN_PROBES])
@@ -851,29 +851,27 @@ def unseen_supports(things, known, surfaces, free_votes, *, floor_z: float | Non
             why[i] = "observed surface inside the slab"
             continue
         found.append((z0, poly, i, share))
+    if not found:
+        return []
     # one thing over unseen space may be a fragment of furniture labelled a thing (a chair's back
     # rail behind a table); things standing at one level near each other mark a surface
-    near = [[j for j, g in enumerate(found) if abs(g[0] - f[0]) <= merge and j != k
-             and _box_gap(f[1], g[1]) <= neighbour] for k, f in enumerate(found)]
-    group = list(range(len(found)))
-    for k in range(len(found)):
-        for j in near[k]:
-            a, b = _root(group, k), _root(group, j)
-            group[max(a, b)] = min(a, b)
-    sizes = np.bincount([_root(group, k) for k in range(len(found))], minlength=len(found))
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(found)
+    pairs = np.array([(k, j) for k in range(n) for j in range(k + 1, n)
+                      if abs(found[k][0] - found[j][0]) <= merge and _box_gap(found[k][1], found[j][1]) <= neighbour],
+                     np.int64).reshape(-1, 2)
+    _, label = connected_components(coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)),
+                                    directed=False)
+    sizes = np.bincount(label)
     out = []
     for k, (z0, poly, i, share) in enumerate(found):
-        if sizes[_root(group, k)] < min_things:
+        if sizes[label[k]] < min_things:
             why[i] = f"no other thing stands at its level within {neighbour:.1f} m"
             continue
         out.append(UnseenSupport(Support(z0, poly, _polygon_area(poly)), i, share))
     return out
-
-
-def _root(parent: list, k: int) -> int:
-    while parent[k] != k:
-        k = parent[k]
-    return k
 
 
 def _box_gap(a: np.ndarray, b: np.ndarray) -> float:
