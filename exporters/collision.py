@@ -185,14 +185,29 @@ def convex_overlap(a, b) -> tuple[float, np.ndarray]:
     return float(down[k_down]), -axes[k_down]
 
 
+STAND_BAND = 0.01       # m: a standing thing's vertices this close to its lowest are its bottom
+
+
 def clip_convex(part, obstacles, clearance: float = 5e-4, max_penetration: float = 1e-3):
     """`part` (convex trimesh) cut back, one plane per obstacle it enters by more than
-    max_penetration, to `clearance` outside that obstacle along the axis of least overlap: the
-    result stays convex and clears every obstacle. None when nothing of it is left."""
+    max_penetration, to `clearance` outside that obstacle along the axis of least overlap (under
+    it, when the obstacle is a thing standing on the part: metadata "stands"): the result stays
+    convex and clears every obstacle. None when nothing of it is left."""
     for ob in obstacles:
         depth, axis = convex_overlap(part, ob)
         if depth <= max_penetration:
             continue
+        if ob.metadata.get("stands") and abs(float(axis[2])) < 0.7:
+            # a thing that stands on this collider (SceneObject.keep_clear): if the part holds a
+            # point just under its bottom (its lowest vertices, their centre), it carries the
+            # thing, and a cut beside it leaves the thing on nothing or on an edge (a chess
+            # object's hulls cut back sideways dropped two things 80 cm); cut under it instead
+            v = np.asarray(ob.vertices, np.float64)
+            below = v[v[:, 2] <= v[:, 2].min() + STAND_BAND]
+            below = np.concatenate([below, below.mean(axis=0, keepdims=True)])
+            below[:, 2] = v[:, 2].min() - 2 * clearance
+            if _inside_convex(part, below).any():
+                axis = np.array([0.0, 0.0, -1.0])
         level = float((np.asarray(ob.vertices, np.float64) @ axis).max()) + clearance
         part = clip_halfspace(part, axis, level)
         if part is None or part.volume <= 0:

@@ -74,6 +74,10 @@ class SceneObject:
     # objects whose observed surface its solid yielded to (exporters.consistency): its collider
     # must not enter them either
     keep_clear: list = field(default_factory=list)
+    # objects its carved solid yielded to (exporters.consistency): cleared by its collider too, unless
+    # it is furniture with tops (clear_tops clears what stands on them; cut back around the things
+    # beside it, a chess counter's hulls left two of them sliding 2 cm)
+    yielded_to: list = field(default_factory=list)
     measured: Measurements = field(default_factory=Measurements)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
 
@@ -627,8 +631,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         hulls = {"max_hulls": STATIC_MAX_HULLS} if is_static_class(o.label, static_classes) else {}
         world = [c.mesh for c in env.colliders if c.mesh.bounds[1][2] > o.mesh.bounds[0][2] - 0.05
                  and np.all(c.mesh.bounds[0] < o.mesh.bounds[1] + 0.05) and np.all(c.mesh.bounds[1] > o.mesh.bounds[0] - 0.05)]
-        hulls_kept_clear = [closed_convex_hull(np.asarray(t.mesh.vertices)) for t in o.keep_clear
-                            if t.role is not Role.SKIPPED and t.mesh is not None]
+        clear_of = o.keep_clear + ([] if tops.get(o.instance_id) else o.yielded_to)
+        hulls_kept_clear = [standing_hull(t.mesh) for t in clear_of if t.role is not Role.SKIPPED and t.mesh is not None]
         obstacles = neighbour_collider_parts(o, finished) + world + [h for h in hulls_kept_clear if h is not None]
         finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed,
                       obstacles=obstacles, **{**kw, **hulls})
@@ -656,6 +660,18 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             if bg.role is Role.SKIPPED:
                 bg = None
     return objs, bg, env
+
+
+def standing_hull(mesh):
+    """The closed convex hull of a thing's solid (trimesh) as an obstacle a support's collider keeps
+    clear of, marked as standing on it (metadata "stands": collision.clip_convex cuts the part that
+    carries it under it, not beside it), or None."""
+    from psimap.completion.meshops import closed_convex_hull
+
+    hull = closed_convex_hull(np.asarray(mesh.vertices))
+    if hull is not None:
+        hull.metadata["stands"] = True
+    return hull
 
 
 def things_on_unseen_supports(inst, known, static_ids, floor_z: float | None) -> tuple[list, dict]:

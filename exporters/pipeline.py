@@ -75,8 +75,9 @@ def export_scene(scene_or_objects, out_dir: str | Path, format: str | list[str] 
     pin_unstable: objects that move or fall in the settle check are exported static (reason in
     report.json, names in report["check"]["pinned"]) and the scene is checked again, up to
     PIN_ROUNDS times. A reconstructed support is never exactly flat: a box 4 cm from a table's
-    rounded, fused edge rested on one point and tipped off (seed-5 demo scene). Only drift and falls
-    are pinned; penetration, NaN and explosions still fail the check.
+    rounded, fused edge rested on one point and tipped off (seed-5 demo scene). Drift, falls and
+    penetration the nudges cannot clear ("wedged") are pinned; NaN and explosions still fail the
+    check.
     overwrite: write into an `out_dir` psimap did not write (psimap.io_utils rules: an earlier export
     there is replaced; with overwrite, other files are kept and only same-named ones replaced).
     up: the capture's gravity-up direction ("auto": estimated, psimap.geometry.gravity; "+z", "-y",
@@ -254,9 +255,10 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
                  settled: dict | None = None, keep: bool = False) -> dict:
     """The MuJoCo check (psimap.sim.check.check_mjcf) of `scene` (ExportScene), on an MJCF written
     to `work_dir` for it and removed after. Returns the check's report with "pinned" {name:
-    reason}: with pin_unstable, dynamic objects that moved or fell are made static (Reason.UNSTABLE,
-    on scene's objects) and the scene is checked again, up to PIN_ROUNDS times. The nudges it
-    reports are those of the last round, for the scene as its objects' roles now stand.
+    reason}: with pin_unstable, dynamic objects that moved, fell or stay wedged in a penetration
+    are made static (Reason.UNSTABLE, on scene's objects) and the scene is checked again, up to
+    PIN_ROUNDS times. The nudges it reports are those of the last round, for the scene as its
+    objects' roles now stand.
     timings: receives the check's clocks (check_s, ...) and sim_seconds_per_wall_second. settled:
     receives the last round's poses after the settle (check_mjcf's `settled`); keep: leave
     work_dir/scene.xml, the MJCF of the last round (nudged, roles as they now stand), for the
@@ -269,6 +271,19 @@ def settle_check(scene, work_dir: Path, *, pin_unstable: bool = True, timings: d
     res = check_mjcf(write_mjcf(scene, work_dir), settled=settled)
     pinned = {}
     for _ in range(PIN_ROUNDS if pin_unstable else 0):
+        if res["penetrating"] and not res["nan"] and not res["exploded"]:
+            # wedged between colliders the nudges cannot leave (a thin thing squeezed between a
+            # static neighbour's hull and the floor, its own hull a few mm past its mesh): static, it
+            # collides with nothing static, and the settle of the rest is asked again
+            wedged = [o for o in scene.objects if o.name in res["wedged"] and o.role is Role.DYNAMIC]
+            for o in wedged:
+                depth, into = res["wedged"][o.name]
+                pinned[o.name] = (f"wedged in the settle check: still {depth * 1000:.1f} mm inside {into} "
+                                  "after the nudges")
+                o.make_static(Reason.UNSTABLE, pinned[o.name])
+            if wedged:
+                res = check_mjcf(write_mjcf(scene, work_dir), settled=settled)
+                continue
         movers = [o for o in scene.objects if o.name in res["unstable"] and o.role is Role.DYNAMIC]
         if res["passed"] or res["nan"] or res["exploded"] or res["penetrating"] or not movers:
             break

@@ -34,6 +34,33 @@ def _load(path: Path):
         raise PsimapError(f"MuJoCo could not load {path}: {msg}") from None
 
 
+def wedged_bodies(model, data, max_penetration: float) -> dict[str, list]:
+    """{free body name: [depth m, name of what it is in]} for the free bodies whose deepest contact
+    penetrates more than max_penetration: what the nudges could not clear (a small thing squeezed
+    between static hulls and the floor goes back and forth between them). What it is in: the other
+    body, or the geom when that is the world's (a static collider, the floor)."""
+    import mujoco
+
+    free = set(_free_bodies(model))
+    out: dict[str, list] = {}
+    for i in range(data.ncon):
+        c = data.contact[i]
+        depth = -float(c.dist)
+        if depth <= max_penetration:
+            continue
+        pair = ((c.geom1, c.geom2), (c.geom2, c.geom1))
+        for g, h in pair:
+            b, other = int(model.geom_bodyid[g]), int(model.geom_bodyid[h])
+            if b not in free:
+                continue
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)
+            into = (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, h) if other == 0 else
+                    mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, other)) or f"geom {h}"
+            if depth > out.get(name, [0.0])[0]:
+                out[name] = [depth, into]
+    return dict(sorted(out.items()))
+
+
 def _free_bodies(model) -> list[int]:
     import mujoco
 
@@ -282,7 +309,8 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
 
     loaded, bodies (free), static_bodies (names of world-welded bodies with colliders), min_contact_dist
     (m), nudges {body: [dx, dy, dz] m: out of a penetration along its contact normal, down onto a
-    support up to max_gap below}, drift {body: m} for resting bodies,
+    support up to max_gap below}, wedged {body: [depth m, what it is in]} (free bodies still
+    penetrating after the nudges, `wedged_bodies`), drift {body: m} for resting bodies,
     max_drift, unsupported (bodies not in contact at t=0), fell {body: m dropped} (unsupported
     bodies that fell more than max_drift: a failure), unstable (names of the bodies that moved more
     than max_drift or fell), nan, exploded, sim_seconds_per_wall_second,
@@ -302,6 +330,7 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     min_dist, _, _ = _penetrations(model, data)
+    wedged = wedged_bodies(model, data, max_penetration)
     # "resting" = within support_gap of something at t = 0 (a reconstruction leaves mm gaps)
     with _contacts_within(model, data, support_gap):
         _, _, touching = _penetrations(model, data)
@@ -337,6 +366,7 @@ def check_mjcf(path: str | Path, *, duration: float = 2.0, max_penetration: floa
         "duration_s": float(steps * model.opt.timestep),
         "min_contact_dist": float(min_dist),
         "penetrating": bool(min_dist < -max_penetration),
+        "wedged": wedged,
         "nudges": nudges,
         **verdict,
         "sim_seconds_per_wall_second": float(steps * model.opt.timestep / max(wall, 1e-9)),

@@ -141,6 +141,41 @@ def test_carved_solid_yields_to_an_observed_one():
     assert table.mesh.volume == pytest.approx(1.0 * 0.6 * 0.05, rel=1e-4)     # the bump is gone
     assert table.mesh.is_watertight and table.mesh.bounds[1, 2] == pytest.approx(0.75, abs=1e-6)
     assert any("overlap with box_2" in s for s in table.measured.repair_steps)
+    assert table.yielded_to == [box] and box.yielded_to == []       # its collider must clear the box
+
+
+def test_a_carved_solid_that_yielded_does_not_swallow_the_object_with_its_collider():
+    """A U-shaped cradle carved from free space fills half of its hollow, where a ball stands that
+    the cameras saw: the cradle yields the shared space, and its collider, made first (it is the
+    bigger), keeps clear of the ball. Before, the cradle's hull spanned the hollow again and the
+    ball was skipped as "inside the collider of" it (7-Scenes chess: two objects, 0-1 % left)."""
+    from psimap.exporters.collision import _inside_convex, collision_geometry
+    from psimap.exporters.consistency import cut_by_colliders
+    from psimap.exporters.objects import standing_hull
+
+    base = _box([0.3, 0.1, 0.05], [0, 0, 0.025])
+    arms = [_box([0.05, 0.1, 0.15], [sx * 0.125, 0, 0.075]) for sx in (-1, 1)]
+    fill = _box([0.2, 0.1, 0.06], [0, 0, 0.08])                 # the carve's excess in the hollow
+    cradle = _obj(trimesh.boolean.union([base, *arms, fill], engine="manifold"), 1, "cradle")
+    cradle.solid_kind = "carved"
+    ball = _obj(trimesh.creation.icosphere(3, radius=0.045).apply_translation([0, 0, 0.096]), 2, "ball")
+    ball.solid_kind = "enclosed"
+    v_ball = ball.mesh.volume
+    make_consistent([ball, cradle], floor_z=0.0)
+    assert cradle.role is ball.role is Role.DYNAMIC and ball.mesh.volume == pytest.approx(v_ball)
+    assert cradle.yielded_to == [ball] and cradle.keep_clear == []
+    obstacles = [standing_hull(t.mesh) for t in cradle.yielded_to]
+    cradle.collision = collision_geometry(cradle.mesh, 0.01, obstacles=obstacles, seed=0)
+    cut_by_colliders(ball, [cradle])
+    assert ball.role is Role.DYNAMIC and ball.mesh.volume > 0.9 * v_ball
+    # and the collider still carries the ball: a part holds the point 3 mm under its bottom
+    under = np.array([[0.0, 0.0, ball.mesh.bounds[0, 2] - 0.003]])
+    assert any(_inside_convex(p, under)[0] for p in cradle.collision.parts)
+    # the same collider made without keeping clear spans the hollow: it cuts 40 % of the ball
+    ball2 = _obj(trimesh.creation.icosphere(3, radius=0.045).apply_translation([0, 0, 0.096]), 2, "ball")
+    cradle.collision = collision_geometry(cradle.mesh, 0.01, seed=0)
+    cut_by_colliders(ball2, [cradle])
+    assert ball2.role is Role.SKIPPED or ball2.mesh.volume < 0.75 * v_ball
 
 
 def test_a_solid_yields_to_an_object_seen_inside_it():

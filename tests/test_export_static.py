@@ -238,3 +238,30 @@ def test_a_thing_on_a_falling_thing_is_pinned_only_if_it_still_moves_on_its_pinn
     e = {o["name"]: o for o in r["objects"]}
     assert not e["box_4"]["static"] and c["drift"]["box_4"] < 0.005, c["drift"]
     assert r["outcome"]["dynamic"] == 1 and r["outcome"]["pinned"] == 1
+
+
+def test_a_thing_wedged_between_static_colliders_is_pinned_and_the_check_passes(tmp_path):
+    """A 10 cm box standing between two static cabinets 9 cm apart (on a real capture: a thin thing
+    squeezed between a static neighbour's hulls and the floor, its own hull a few mm past its
+    mesh): every nudge out of one cabinet pushes it 5 mm into the other, so the penetration stays.
+    It is pinned ("wedged"), static it collides with nothing static, and the scene passes; before,
+    the whole check failed on the initial penetration (7-Scenes chess at 31 of 44 dynamic)."""
+    from psimap.exporters.objects import build_object
+    from psimap.exporters.pipeline import export_scene
+
+    cab = [build_object(trimesh.creation.box(extents=[0.3, 0.4, 0.3]).apply_translation([sx * (0.045 + 0.15), 0, 0.15]),
+                        "cabinet", i + 1, completion="none") for i, sx in enumerate((-1, 1))]
+    box = build_object(trimesh.creation.box(extents=[0.1, 0.1, 0.1]).apply_translation([0, 0, 0.05]), "box", 3,
+                       completion="none")
+    free = export_scene([*cab, box], tmp_path / "free", "mjcf", pin_unstable=False)["check"]
+    assert not free["passed"] and free["penetrating"] and free["pinned"] == {}
+    depth, into = free["wedged"]["box_3"]
+    assert 0.004 < depth < 0.0105 and into in ("cabinet_1", "cabinet_2")     # 1 cm of overlap in all
+    r = export_scene([*cab, box], tmp_path / "pin", "mjcf")
+    c = r["check"]
+    assert c["passed"], c["failures"]
+    assert list(c["pinned"]) == ["box_3"] and c["wedged"] == {} and not c["penetrating"]
+    assert c["pinned"]["box_3"].startswith("wedged in the settle check: still ")
+    assert f"mm inside cabinet_" in c["pinned"]["box_3"]
+    assert _bodies(tmp_path / "pin" / "scene.xml")["box_3"].find("freejoint") is None
+    assert r["outcome"]["pinned"] == 1 and r["outcome"]["dynamic"] == 0

@@ -488,6 +488,25 @@ def test_collider_stays_out_of_neighbour_colliders():
     assert C.clip_convex(mesh, [trimesh.creation.box(extents=[1, 1, 1])]) is None
 
 
+def test_a_part_that_carries_a_thing_is_cut_under_it_not_beside_it():
+    """A thin board part (3 cm deep in y) and a thing standing 4 cm deep in a notch of it and wider
+    than it in y: the least overlap is sideways, and that cut leaves nothing of the board (the
+    thing falls through); marked as standing on it (SceneObject.keep_clear's hulls), the board is
+    cut under the thing and still carries it."""
+    from psimap.exporters.objects import standing_hull
+
+    board = trimesh.creation.box(bounds=[[-0.15, -0.015, 0.0], [0.15, 0.015, 0.1]])
+    thing = trimesh.creation.box(bounds=[[-0.04, -0.02, 0.06], [0.04, 0.02, 0.11]])
+    assert C.clip_convex(board, [thing]) is None                 # cut beside it: nothing left
+    cut = C.clip_convex(board, [standing_hull(thing)])
+    assert cut is not None and cut.bounds[1, 2] == pytest.approx(0.06 - 5e-4, abs=1e-6)
+    assert C._inside_convex(cut, np.array([[0.0, 0.0, 0.058]]))[0] and C.convex_overlap(cut, thing)[0] <= 0
+    # a thing beside the part, not on it, is cleared the short way as before
+    side = trimesh.creation.box(bounds=[[0.14, -0.03, 0.02], [0.2, 0.03, 0.08]])
+    beside = C.clip_convex(board, [standing_hull(side)])
+    assert beside.bounds[1, 0] == pytest.approx(0.14 - 5e-4, abs=1e-6) and beside.bounds[1, 2] == pytest.approx(0.1)
+
+
 # ---------------------------------------------------------------- texture
 def _cam_looking_down(height=1.0, w=64, h=64, f=60.0):
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
