@@ -74,9 +74,8 @@ class SceneObject:
     # objects whose observed surface its solid yielded to (exporters.consistency): its collider
     # must not enter them either
     keep_clear: list = field(default_factory=list)
-    # objects its carved solid yielded to (exporters.consistency): cleared by its collider too, unless
-    # it is furniture with tops (clear_tops clears what stands on them; cut back around the things
-    # beside it, a chess counter's hulls left two of them sliding 2 cm)
+    # objects its carved solid yielded to (exporters.consistency): cleared by its collider too,
+    # unless it is furniture with tops (kept_clear)
     yielded_to: list = field(default_factory=list)
     measured: Measurements = field(default_factory=Measurements)
     source: object | None = field(default=None, repr=False)   # input mesh until finish_object
@@ -631,8 +630,8 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
         hulls = {"max_hulls": STATIC_MAX_HULLS} if is_static_class(o.label, static_classes) else {}
         world = [c.mesh for c in env.colliders if c.mesh.bounds[1][2] > o.mesh.bounds[0][2] - 0.05
                  and np.all(c.mesh.bounds[0] < o.mesh.bounds[1] + 0.05) and np.all(c.mesh.bounds[1] > o.mesh.bounds[0] - 0.05)]
-        clear_of = o.keep_clear + ([] if tops.get(o.instance_id) else o.yielded_to)
-        hulls_kept_clear = [standing_hull(t.mesh) for t in clear_of if t.role is not Role.SKIPPED and t.mesh is not None]
+        hulls_kept_clear = [standing_hull(t.mesh) for t in kept_clear(o, bool(tops.get(o.instance_id)))
+                            if t.role is not Role.SKIPPED and t.mesh is not None]
         obstacles = neighbour_collider_parts(o, finished) + world + [h for h in hulls_kept_clear if h is not None]
         finish_object(o, views=views_of.get(o.instance_id), resolution=inst.voxel_size, seed=seed,
                       obstacles=obstacles, **{**kw, **hulls})
@@ -660,6 +659,14 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
             if bg.role is Role.SKIPPED:
                 bg = None
     return objs, bg, env
+
+
+def kept_clear(obj: SceneObject, has_tops: bool) -> list:
+    """The objects obj's collider keeps clear of: its keep_clear (things seen inside its solid,
+    things on its tops) and, unless it is furniture with tops (`has_tops`), the objects its carved
+    solid yielded to (yielded_to): clear_tops already clears what stands on a top, and cut back
+    around the things beside it, a chess counter's hulls left two of them sliding 2 cm."""
+    return obj.keep_clear + ([] if has_tops else [t for t in obj.yielded_to if t not in obj.keep_clear])
 
 
 def standing_hull(mesh):

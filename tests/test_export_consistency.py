@@ -171,6 +171,10 @@ def test_a_carved_solid_that_yielded_does_not_swallow_the_object_with_its_collid
     # and the collider still carries the ball: a part holds the point 3 mm under its bottom
     under = np.array([[0.0, 0.0, ball.mesh.bounds[0, 2] - 0.003]])
     assert any(_inside_convex(p, under)[0] for p in cradle.collision.parts)
+    # furniture with tops clears only its keep_clear (what stands on a top: clear_tops)
+    from psimap.exporters.objects import kept_clear
+
+    assert kept_clear(cradle, False) == [ball] and kept_clear(cradle, True) == []
     # the same collider made without keeping clear spans the hollow: it cuts 40 % of the ball
     ball2 = _obj(trimesh.creation.icosphere(3, radius=0.045).apply_translation([0, 0, 0.096]), 2, "ball")
     cradle.collision = collision_geometry(cradle.mesh, 0.01, seed=0)
