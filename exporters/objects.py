@@ -540,7 +540,6 @@ def _extract_scene(scene, *, completion: str, progress: bool, seed: int, timings
     from tqdm import tqdm
 
     from psimap.completion import CompletionContext
-    from psimap.completion.meshops import closed_convex_hull
     from psimap.exporters.consistency import (cut_by_colliders, cut_by_environment, make_consistent,
                                               neighbour_collider_parts)
     from psimap.exporters.environment import (add_support_slabs, add_unseen_supports, flatten_solid, flatten_under,
