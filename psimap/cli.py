@@ -23,7 +23,7 @@ COMMANDS = {
     "export": (O.ExportOptions, "psimap.exporters:cli_export",
                "export per-object assets (MJCF / USD / GLB)"),
     "eval": (O.EvalOptions, "psimap.cli:run_eval",
-             "geometry, panoptic and object metrics against ground truth"),
+             "geometry, panoptic and object metrics against ground truth; a map's fit to its capture"),
     "labels": (O.LabelsOptions, "psimap.panoptic:cli_labels",
                "3D-consistent 2D panoptic labels (COCO panoptic)"),
     "segment": (O.SegmentOptions, "psimap.segment:cli_segment",

@@ -52,7 +52,9 @@ class GenerateOptions:
 class EvalOptions:
     pred: str = pos("scene.ckpt, a mesh file (.ply/.obj/.glb), an export folder (report.json + meshes/: "
                     "object metrics) or a folder of predicted label PNGs")
-    data: str = pos("scene folder with ground truth under gt/")
+    data: str = pos("the capture: ground truth under gt/ gives geometry / panoptic / object metrics; a "
+                    "checkpoint is also measured against the capture's own frames (depth error, coverage, "
+                    "PSNR), which needs no ground truth")
     json: bool = opt(False, "print the metrics as JSON")
     threshold: float = opt(0.05, "distance threshold for the geometry's precision / recall / F1, metres "
                                  "(objects: always 1 and 2.5 cm)")

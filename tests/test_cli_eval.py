@@ -254,12 +254,17 @@ def test_checkpoint_is_evaluated_through_its_mesh(data, capsys, tmp_path, monkey
         def mesh(self):
             return gt_mesh
 
+        def render(self, K, c2w, width, height):        # renders nothing: its fit covers nothing
+            z = np.zeros((height, width), np.float32)
+            return types.SimpleNamespace(alpha=z, median_depth=z, rgb=np.zeros((height, width, 3), np.float32))
+
     fake = types.ModuleType("psimap.scene")
     fake.load_scene = lambda path: seen.append(str(path)) or FakeScene()
     monkeypatch.setitem(sys.modules, "psimap.scene", fake)
     rc, out, err = run(capsys, ckpt, data, "--json", "--samples", "5000")
     assert rc == 0, err
     assert seen == [str(ckpt)] and json.loads(out)["geometry"]["f1"] == 1.0
+    assert json.loads(out)["fit"]["coverage"] == 0.0
     # Without the training stage installed: one clear line.
     monkeypatch.setitem(sys.modules, "psimap.scene", None)
     rc, out, err = run(capsys, ckpt, data)

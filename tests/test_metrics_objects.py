@@ -296,7 +296,9 @@ def test_checkpoint_objects_of_a_turned_capture(exported, upright, monkeypatch, 
     assert main(["eval", str(ckpt), str(data), "--objects", "--json", "--samples", "20000", "--plot", str(plot)]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["geometry"]["f1"] > 0.9 and res["panoptic"]["pq"] > 0.5
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval_geometry.png", "eval_objects.png", "eval_panoptic.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval_fit.png", "eval_geometry.png", "eval_objects.png",
+                                                          "eval_panoptic.png"]
+    assert res["fit"]["coverage"] > 0.9          # the map covers the depth of its own frames
     rows = {x["class"]: x for x in res["objects"]["per_object"]}
     for x in upright[0]["objects"]["per_object"]:
         r = rows[x["class"]]

@@ -293,13 +293,14 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
     root = Path(seq.root or data)
     do_geometry = read_gt(root).mesh is not None
     do_panoptic = _has_gt_labels(seq) and has_labels(scene) and bool(scene.classes)
-    if not (do_geometry or do_panoptic or things):
-        raise PsimapError(f"{root / 'gt'}: nothing to evaluate {pred} against (needs gt/mesh.ply, or "
-                          f"gt/semantic label maps and a checkpoint with panoptic labels)")
+    if len(seq) == 0:
+        raise PsimapError(f"{root}: no frames to evaluate {pred} on")
     out = {}
     parts = [p for p, do in (("geometry", do_geometry), ("panoptic", do_panoptic), ("objects", things)) if do]
 
     def plot_of(part):         # one plot keeps the name asked for, several are told apart
+        if part == "fit":       # the fit is beside any of them; alone, it is the plot asked for
+            return plot_path(plot, part) if plot and parts else plot
         return plot_path(plot, part) if plot and len(parts) > 1 else plot
 
     if things is not None:
@@ -314,12 +315,17 @@ def evaluate_checkpoint(pred, data, *, threshold=0.05, samples=200_000, seed=0, 
         with single_threaded():     # one label render per frame: spinning pools cost more than they give
             out["panoptic"] = evaluate_panoptic(_RenderedLabels(scene, seq), data, progress=progress,
                                                 plot=plot_pan)
+    from psimap.metrics.fit import evaluate_fit
+
+    # no ground truth needed: how well the map fits the frames it came from (a real capture's only
+    # quality figure before export)
+    out["fit"] = evaluate_fit(scene, seq, progress=progress, plot=plot_of("fit"))
     return out
 
 
 def plot_path(plot: str, part: str) -> str:
-    """Where the `part` ("geometry" / "panoptic" / "objects") plot goes when a checkpoint gets more than
-    one plot."""
+    """Where the `part` ("geometry" / "panoptic" / "objects" / "fit") plot goes when a checkpoint gets
+    more than one plot."""
     return str(Path(plot).with_name(Path(plot).stem + "_" + part + Path(plot).suffix))
 
 
@@ -417,6 +423,8 @@ def to_json(result: dict) -> str:
         out["panoptic"]["per_class"] = p.get("per_class", {})
     if "objects" in result:
         out["objects"] = result["objects"]
+    if "fit" in result:
+        out["fit"] = result["fit"]
     return json.dumps(_jsonable(out), indent=1)
 
 
@@ -463,6 +471,10 @@ def format_table(result: dict) -> str:
         from psimap.metrics.objects import format_objects
 
         lines += format_objects(result["objects"])
+    if "fit" in result:
+        from psimap.metrics.fit import format_fit
+
+        lines += format_fit(result["fit"])
     return "\n".join(lines)
 
 
@@ -472,7 +484,7 @@ def cli_eval(opts, objects=None) -> int:
     if getattr(opts, "plot", ""):
         from psimap.io_utils import check_output_file
 
-        for p in (opts.plot, *(plot_path(opts.plot, part) for part in ("geometry", "panoptic", "objects"))):
+        for p in (opts.plot, *(plot_path(opts.plot, part) for part in ("geometry", "panoptic", "objects", "fit"))):
             check_output_file(p, overwrite=opts.overwrite, what="--plot")     # before the work
     if getattr(opts, "objects", False):
         pred = Path(opts.pred)
