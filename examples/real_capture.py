@@ -1,4 +1,4 @@
-"""A real RGB-D capture to a simulation scene: 7-Scenes frames -> segment -> train -> export -> summary.
+"""A real RGB-D capture to a simulation scene: 7-Scenes frames -> segment -> train -> eval -> export -> summary.
 
 The capture has colour, depth and poses but no masks, so `psimap segment` makes per-frame pseudo-labels
 first (planes by orientation and height, then 3D clusters); the panoptic field makes them consistent
@@ -135,6 +135,9 @@ def main(argv=None) -> int:
     if args.iters:
         train += ["--iters", str(args.iters)]
     psimap_cli(*train)
+    # no ground truth on a real capture: eval gives the map's fit to its own frames (depth error
+    # against the sensor, coverage, PSNR), the one quality figure before the export
+    psimap_cli("eval", str(ckpt), str(capture))
     # exit 2: written, but the settle check failed or too few things came out dynamic; the summary
     # says which (a real capture's large furniture chunks are often pinned static)
     rc = psimap_cli("export", str(ckpt), "--format", args.format, "--out", str(export), ok=(0, 2))

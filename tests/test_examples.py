@@ -35,6 +35,7 @@ def test_real_capture_example_end_to_end(tmp_path):
     table = r.stdout[r.stdout.index("object  "):]
     assert all(n in table for n in names)                      # one row per exported object
     assert "static world:" in table and "MuJoCo check: passed" in table
+    assert "fit to the capture" in r.stdout and "% of the sensor's depth pixels rendered" in r.stdout
     if "no preview" not in r.stdout:                           # offscreen GL (EGL) present
         import numpy as np
         from PIL import Image
