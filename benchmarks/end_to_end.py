@@ -197,12 +197,15 @@ def run_capture(name: str, work: Path) -> dict:
         "surfels": m.get("surfels"), "queries": m.get("queries_final"), "instances": m.get("instances"),
         "check_passed": bool(report.get("check", {}).get("passed", False)),
     }
+    res = evaluate(ckpt, data)
+    # the map's fit to its own frames (psimap/metrics/fit.py): the one quality figure a real capture has
+    row["fit_depth_cm"] = res["fit"]["depth_mae_cm"]
+    row["fit_psnr_db"] = res["fit"]["psnr_db"]
     if real:        # no ground truth: what the export made of the instances
         objs = [o for o in report.get("objects", []) if not o.get("skipped")]
         return row | {"segment_s": segment_s, "f1": None, "chamfer_cm": None, "pq": None, "pq_thing": None,
                       "object_f": None, "found": len(objs), "gt_things": None,
                       "dynamic": sum(1 for o in objs if not o.get("static")), "movable": len(objs)}
-    res = evaluate(ckpt, data)
     obj = evaluate(export, data)["objects"]["summary"]
     return row | {
         "f1": res["geometry"]["f1"], "chamfer_cm": 100 * res["geometry"]["chamfer_l1"],
@@ -279,7 +282,7 @@ def report(rows: list[dict], write: bool = True) -> None:
     rows = sorted(rows, key=lambda r: (order.get(r["capture"], 9), labels.index(r["label"])))
     header = (["capture", "label"] + [f"{s} s" for s in STAGES]
               + ["train s", "export s", "panoptic share", "panoptic steps", "F1@5cm", "Chamfer cm", "PQ",
-                 "object F@2.5cm", "found", "dynamic"])
+                 "object F@2.5cm", "found", "dynamic", "fit: depth cm / PSNR dB"])
     table = []
     for r in rows:
         st = r["stages"]
@@ -289,7 +292,8 @@ def report(rows: list[dict], write: bool = True) -> None:
                         r["panoptic_steps"], _num(r["f1"], ".4f"), _num(r["chamfer_cm"], ".2f"), _num(r["pq"], ".3f"),
                         _num(r["object_f"], ".3f"),
                         f"{r['found']}/{r['gt_things']}" if r["gt_things"] is not None else f"{r['found']} exported",
-                        f"{r['dynamic']}/{r['movable']}"])
+                        f"{r['dynamic']}/{r['movable']}",
+                        f"{_num(r.get('fit_depth_cm'), '.2f')} / {_num(r.get('fit_psnr_db'), '.1f')}"])
     cpu_header = ["capture", "label"] + [f"{s} user / sys" for s in STAGES] + ["max sys/user"]
     cpu = []
     for r in rows:
@@ -330,7 +334,9 @@ def report(rows: list[dict], write: bool = True) -> None:
               "prior + geometry + panoptic; panoptic share = panoptic / train. Quality: F1@5cm and "
               "Chamfer-L1 of the checkpoint's mesh, PQ of its rendered labels (psimap eval), object "
               "F-score at 2.5 cm over the ground-truth things and things found / dynamic of the export "
-              "(psimap eval EXPORT); chess (real, no ground truth): objects exported and dynamic, its "
+              "(psimap eval EXPORT); fit: the checkpoint's mean depth error against its own frames' depth and "
+              "their PSNR (psimap eval's fit, no ground truth needed; n/a in rows from before it existed); "
+              "chess (real, no ground truth): objects exported and dynamic, its "
               "labels from `psimap segment` (seconds in the runs file, not a stage). Times compare only between rows measured on one CPU: rows that "
               "name none were measured on the machine of the sessions up to 2026-11-25 (AVX-512, ~1.7x "
               "faster than the AMD EPYC of the rows after it). Runs: " + runs + ".")
