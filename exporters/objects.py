@@ -665,7 +665,7 @@ def kept_clear(obj: SceneObject, has_tops: bool) -> list:
     things on its tops) and, unless it is furniture with tops (`has_tops`), the objects its carved
     solid yielded to (yielded_to): clear_tops already clears what stands on a top, and cut back
     around the things beside it, a chess counter's hulls left two of them sliding 2 cm."""
-    return obj.keep_clear + ([] if has_tops else [t for t in obj.yielded_to if t not in obj.keep_clear])
+    return obj.keep_clear + ([] if has_tops else obj.yielded_to)      # disjoint: consistency adds to one
 
 
 def standing_hull(mesh):

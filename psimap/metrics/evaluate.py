@@ -424,7 +424,9 @@ def to_json(result: dict) -> str:
     if "objects" in result:
         out["objects"] = result["objects"]
     if "fit" in result:
-        out["fit"] = result["fit"]
+        from psimap.metrics.fit import FIT_KEYS
+
+        out["fit"] = {k: result["fit"][k] for k in (*FIT_KEYS, "per_frame")}
     return json.dumps(_jsonable(out), indent=1)
 
 
