@@ -155,7 +155,8 @@ class SegmentOptions:
     data: str = pos("capture folder without labels (any layout psimap reads)")
     up: str = opt("auto", "which way is up in the capture: auto (estimated from its surfaces and cameras), "
                           "or +z, -z, +y, -y, +x, -x, or a vector 'x,y,z'")
-    every: int = opt(1, "label every N-th frame (1 = all; the others stay unlabelled)")
+    every: int = opt(0, "label every N-th frame (1 = all; the others stay unlabelled); 0 = the frames "
+                        "psimap train reads: all of a capture up to 300 frames, else 300 evenly spaced")
     force: bool = opt(False, "replace the capture's existing labels")
     preview: str = opt("", "contact sheet PNG of a few frames and their labels (default: DATA/segment_preview.png)")
     no_preview: bool = opt(False, "write no contact sheet")

@@ -259,12 +259,36 @@ def test_cli_labels_a_capture_refuses_to_replace_them_and_train_sees_them(tablet
     assert not (again / "segment_preview.png").exists()
 
 
+def test_by_default_the_frames_training_reads_are_labelled(tabletop, tmp_path, monkeypatch):
+    """A capture longer than training's frame cap (TRAIN_FRAMES, 300; 4 here) gets labels on the
+    frames `psimap train` reads, no more: every one of them labelled, the others not."""
+    import psimap.segment.capture as capture
+    from psimap.cli import main
+    from psimap.data import load
+    from psimap.train.config import TrainConfig
+    from psimap.train.trainer import prepare_frames
+
+    data = tmp_path / "long"
+    shutil.copytree(tabletop, data)
+    monkeypatch.setattr(capture, "TRAIN_FRAMES", 4)
+    # --force: the overlay replaces the generator's labels; the frames it leaves out have none
+    assert main(["segment", str(data), "--force", "--no-preview"]) == 0
+    seq = load(data)
+    assert [i for i in range(len(seq)) if seq[i].semantic is not None] == [0, 2, 3, 5]     # of 6
+    frames = prepare_frames(seq, TrainConfig(max_frames=4), log=lambda m: None)[0]
+    assert len(frames) == 4 and all(f.semantic is not None for f in frames)
+    # a short capture: all of it
+    monkeypatch.setattr(capture, "TRAIN_FRAMES", 6)
+    assert main(["segment", str(data), "--force", "--no-preview"]) == 0
+    assert all(f.semantic is not None for f in load(data))
+
+
 def test_bad_input_is_one_error(tmp_path, capsys):
     from psimap.cli import main
 
     assert main(["segment", str(tmp_path / "missing")]) == 1
     assert "no such" in capsys.readouterr().err
-    assert main(["segment", str(tmp_path), "--every", "0"]) == 1
+    assert main(["segment", str(tmp_path), "--every", "-1"]) == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "error" in err
 

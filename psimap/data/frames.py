@@ -10,6 +10,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+# Frames `psimap train` uses at most (TrainConfig.max_frames), and the ones `psimap segment` labels
+# by default: a 30 fps phone capture has thousands, and more views of the same room only repeat it.
+TRAIN_FRAMES = 300
+
+
+def evenly_spaced(count: int, most: int) -> list[int]:
+    """Indices of at most `most` of `count` frames, evenly spaced from the first to the last: the
+    frames training reads (psimap.train.trainer) and the ones `psimap segment` labels for it."""
+    if count <= 0 or most <= 0:
+        return []
+    return np.unique(np.linspace(0, count - 1, min(count, most)).round().astype(int)).tolist()
+
 
 class DepthSized:
     """`height` / `width` of a frame from its depth map [H, W] (numpy array or tensor)."""

@@ -29,8 +29,10 @@ def evaluate_fit(scene, seq, *, max_frames: int = 60, progress: bool = False, pl
     no frame could give (no depth anywhere, no colour) is NaN."""
     from tqdm import tqdm
 
+    from psimap.data.frames import evenly_spaced
+
     n = len(seq)
-    idx = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(n, max_frames))}) if n else []
+    idx = evenly_spaced(n, max_frames)
     err_sum = 0.0
     counts = {"both": 0, "valid": 0, "covered": 0, "added": 0, "within_1cm": 0, "within_5cm": 0}
     kept, per_frame, psnrs = [], [], []

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from psimap.data.frames import TRAIN_FRAMES
 from psimap.panoptic.config import PanopticConfig
 
 # TrainConfig field -> PanopticConfig field it sets (names kept: they are checkpoint config keys)
@@ -141,7 +142,8 @@ class TrainConfig:
                                         "0.843 and PQ too; see benchmarks/RESULTS.md)")
 
     # ---- data -----------------------------------------------------------------------------------
-    max_frames: int = _f(300, "use at most this many frames (evenly spaced)")
+    max_frames: int = _f(TRAIN_FRAMES, "use at most this many frames (evenly spaced; `psimap segment` "
+                                       "labels these by default)")
     max_width: int = _f(320, "train at most this image width (larger frames are block-averaged "
                               "down by an integer factor)")
     max_depth: float = _f(0.0, "ignore observed depth beyond this (m); 0 = keep all")

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from psimap import PsimapError
+from psimap.data.frames import evenly_spaced
 from psimap.nonfinite import Diverged, NonFiniteGuard, backward_if_finite
 from psimap.panoptic.fit import View
 from psimap.train.config import TrainConfig
@@ -182,7 +183,7 @@ def prepare_frames(seq, cfg: TrainConfig, log=print):
     n = len(seq)
     if n == 0:
         raise PsimapError("the data folder has no frames")
-    idx = np.unique(np.linspace(0, n - 1, min(n, cfg.max_frames)).round().astype(int))
+    idx = evenly_spaced(n, cfg.max_frames)
     kept, skipped, sweeps = [], [], []
     for i in idx:
         f = seq[int(i)]
