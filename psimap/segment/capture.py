@@ -8,7 +8,9 @@ the panoptic field makes them consistent in 3D.
 """
 from __future__ import annotations
 
+import os
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -116,11 +118,13 @@ def frame_indices(count: int, every: int) -> list[int]:
 
 def segment_capture(data, *, up: str = "auto", every: int = 0, params: SegmentParams | None = None,
                     force: bool = False, preview: str | None = "", progress: bool = True,
-                    preview_frames: int = 6, preview_dpi: int = 110) -> dict:
+                    preview_frames: int = 6, preview_dpi: int = 110, workers: int = 0) -> dict:
     """Label the capture at `data` and write its labels overlay (psimap.data.label_overlay) and a
     contact sheet; returns a summary dict. every: label every N-th frame; 0 = the frames `psimap
-    train` reads (at most psimap.data.frames.TRAIN_FRAMES, evenly spaced; all of a shorter capture). preview: PNG path ("" = DATA/segment_preview.png,
-    None = none) of `preview_frames` evenly spaced frames at `preview_dpi`."""
+    train` reads (at most psimap.data.frames.TRAIN_FRAMES, evenly spaced; all of a shorter
+    capture). preview: PNG path ("" = DATA/segment_preview.png, None = none) of `preview_frames`
+    evenly spaced frames at `preview_dpi`. workers: threads labelling frames (0 = one per core this
+    process may use); the labels are the same for any count."""
     from psimap.data import load
     from psimap.data.frames import ClassInfo
     from psimap.data.label_overlay import check_label_write, write_label_overlay
@@ -151,26 +155,50 @@ def segment_capture(data, *, up: str = "auto", every: int = 0, params: SegmentPa
     n_show = max(1, int(preview_frames))
     show = set(indices[:: max(1, len(indices) // n_show)][:n_show])
     sheet, stats = [], {"planes": [], "objects": [], "seconds": [], "stuff": {}}
+    n_workers = max(1, min(len(indices), workers or len(os.sched_getaffinity(0))))
+
+    def label_one(i, f):
+        ts = time.thread_time()
+        if not np.isfinite(np.asarray(f.c2w)).all():
+            sem = inst = np.zeros(f.depth.shape, np.uint16)
+            info = {"planes": [], "objects": 0}
+        else:
+            sem, inst, info = segment_frame(f.depth, f.rgb, f.K, f.c2w, capture, params, seed=i)
+        return sem, inst, info, time.thread_time() - ts
 
     def labelled():
+        from concurrent.futures import ThreadPoolExecutor
+
         from tqdm import tqdm
 
-        for i, name in zip(tqdm(indices, desc="psimap segment: frames", disable=not progress, leave=False), names):
-            f = seq[i]
-            ts = time.perf_counter()
-            if not np.isfinite(np.asarray(f.c2w)).all():
-                sem = inst = np.zeros(f.depth.shape, np.uint16)
-                info = {"planes": [], "objects": 0}
-            else:
-                sem, inst, info = segment_frame(f.depth, f.rgb, f.K, f.c2w, capture, params, seed=i)
-            stats["seconds"].append(time.perf_counter() - ts)
-            stats["planes"].append(len(info["planes"]))
-            stats["objects"].append(info["objects"])
-            for p in info["planes"]:
-                stats["stuff"][p["class"]] = stats["stuff"].get(p["class"], 0) + 1
-            if i in show:
-                sheet.append((name or f.name, np.asarray(f.rgb), sem, inst))
-            yield name or f.name, sem, inst
+        # frames are independent: one per core on threads (most of a frame is NumPy, SciPy and
+        # Open3D outside the GIL; each frame keeps its own seed, so the labels are those of one
+        # thread: tests/test_segment.py), read here in order, a few ahead of the writer
+        todo = iter(zip(indices, names))
+        pending = deque()
+        with ThreadPoolExecutor(n_workers) as ex, tqdm(total=len(indices), desc="psimap segment: frames",
+                                                       disable=not progress, leave=False) as bar:
+            def submit():
+                for i, name in todo:
+                    f = seq[i]
+                    pending.append((i, name, f, ex.submit(label_one, i, f)))
+                    return
+
+            for _ in range(2 * n_workers):
+                submit()
+            while pending:
+                i, name, f, job = pending.popleft()
+                sem, inst, info, seconds = job.result()
+                submit()
+                bar.update()
+                stats["seconds"].append(seconds)
+                stats["planes"].append(len(info["planes"]))
+                stats["objects"].append(info["objects"])
+                for p in info["planes"]:
+                    stats["stuff"][p["class"]] = stats["stuff"].get(p["class"], 0) + 1
+                if i in show:
+                    sheet.append((name or f.name, np.asarray(f.rgb), sem, inst))
+                yield name or f.name, sem, inst
 
     classes = [ClassInfo(i, n, t) for i, n, t in CLASS_TABLE]
     manifest = write_label_overlay(root, classes, labelled(), source="psimap segment", force=force)
