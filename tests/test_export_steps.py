@@ -750,6 +750,37 @@ def test_an_instance_with_no_surface_says_why():
     assert m and int(m.group(1)) > 0 and int(m.group(2)) < 16
 
 
+def test_an_instance_is_fused_from_at_most_max_fusion_views_evenly_spaced(monkeypatch):
+    """A thing seen in every frame of a long capture is fused from MAX_FUSION_VIEWS of the views
+    that see it (first to last, evenly spaced), not all of them; one seen in fewer keeps all."""
+    import psimap.exporters.instance_meshes as im
+    from psimap.camera import camera_rig, look_at
+    from psimap.data.frames import ClassInfo
+    from psimap.scene import scene_from_meshes
+
+    box = trimesh.creation.box(extents=[0.3, 0.3, 0.3]).apply_translation([0, 0, 0.15])
+    floor = trimesh.creation.box(extents=[2, 2, 0.02]).apply_translation([0, 0, -0.01])
+    c2ws = [look_at(np.array([1.2 * np.cos(a), 1.2 * np.sin(a), 0.9]), np.array([0, 0, 0.15]))
+            for a in np.linspace(0, 2 * np.pi, 7, endpoint=False)]
+    classes = [ClassInfo(1, "floor", False), ClassInfo(2, "box", True)]
+    scene = scene_from_meshes([floor, box], [0, 5], [1, 2], classes, camera_rig(c2ws, 48, 36, 60.0))
+    fused = []
+    real = im.fuse_instance
+
+    def spy(surfels, views, **kw):
+        fused.append([v.c2w for v in views])
+        return real(surfels, views, **kw)
+    monkeypatch.setattr(im, "fuse_instance", spy)
+    monkeypatch.setattr(im, "MAX_FUSION_VIEWS", 3)
+    inst = im.instance_meshes(scene)
+    assert len(inst.views) == 7 and len(fused) == 1
+    assert len(fused[0]) == 3 and all(np.allclose(a, c2ws[k]) for a, k in zip(fused[0], (0, 3, 6)))
+    assert inst.things[0].mesh is not None and len(inst.things[0].mesh.faces)
+    monkeypatch.setattr(im, "MAX_FUSION_VIEWS", 7)
+    im.instance_meshes(scene)
+    assert len(fused[1]) == 7
+
+
 def test_a_resting_object_gets_no_cylinder_lying_on_its_side():
     """Issue #17: a reconstructed apple (a 3.5 cm ball cut flat where it rests, 6.4 cm tall)
     fits a lying cylinder within tolerance; its centre of mass off the axis, it rolled 10 cm in the
