@@ -8,7 +8,6 @@ the panoptic field makes them consistent in 3D.
 """
 from __future__ import annotations
 
-import os
 import time
 from collections import deque
 from pathlib import Path
@@ -17,6 +16,7 @@ import numpy as np
 
 from psimap import PsimapError
 from psimap.data.frames import TRAIN_FRAMES, evenly_spaced
+from psimap.threads import available_cores
 from psimap.segment.frame import CLASS_TABLE, Capture, SegmentParams, camera_points, pixel_normals, segment_frame
 
 # Frames the capture-wide pass reads (evenly spaced): enough for up and the floor in a room walk.
@@ -155,7 +155,7 @@ def segment_capture(data, *, up: str = "auto", every: int = 0, params: SegmentPa
     n_show = max(1, int(preview_frames))
     show = set(indices[:: max(1, len(indices) // n_show)][:n_show])
     sheet, stats = [], {"planes": [], "objects": [], "seconds": [], "stuff": {}}
-    n_workers = max(1, min(len(indices), workers or len(os.sched_getaffinity(0))))
+    n_workers = max(1, min(len(indices), workers or available_cores()))
 
     def label_one(i, f):
         ts = time.thread_time()

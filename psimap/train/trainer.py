@@ -8,7 +8,6 @@ field on the frozen surfel set (`panoptic_phase`, psimap.panoptic.fit's loop) ->
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -18,6 +17,7 @@ import torch
 
 from psimap import PsimapError
 from psimap.data.frames import evenly_spaced
+from psimap.threads import available_cores
 from psimap.nonfinite import Diverged, NonFiniteGuard, backward_if_finite
 from psimap.panoptic.fit import View
 from psimap.train.config import TrainConfig
@@ -936,10 +936,3 @@ def render_threads(cfg: TrainConfig) -> int:
     """Threads of the geometry steps: cfg.threads, or every core this process may use."""
     return int(cfg.threads) if cfg.threads > 0 else available_cores()
 
-
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity; os.cpu_count where that is unknown)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
