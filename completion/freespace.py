@@ -13,6 +13,17 @@ from __future__ import annotations
 import numpy as np
 
 from psimap import PsimapError
+from psimap.transforms import PIXEL_CENTER
+
+
+def pixel_floor_K(K: np.ndarray) -> np.ndarray:
+    """K [3, 3] with its principal point moved so that floor(fx x / z + cx) is the pixel whose
+    centre is nearest (pixel u spans [u + PIXEL_CENTER - 0.5, u + PIXEL_CENTER + 0.5): OpenCV's
+    centres at integers), as psimap.camera.nearest_pixels rounds. The depth tests floor (the
+    native kernel's cast truncates); with K itself they read the pixel half a pixel up and left."""
+    K = np.array(K, np.float64)
+    K[:2, 2] += 0.5 - PIXEL_CENTER
+    return K
 
 
 def check_cameras(cameras, depths) -> list[tuple[np.ndarray, np.ndarray, int, int, np.ndarray]]:
@@ -48,8 +59,9 @@ def cameras_seeing(cameras, lo: np.ndarray, hi: np.ndarray):
         front = z > 1e-6
         if not front.any():
             continue
-        u = K[0, 0] * pc[front, 0] / z[front] + K[0, 2]
-        v = K[1, 1] * pc[front, 1] / z[front] + K[1, 2]
+        Kp = pixel_floor_K(K)
+        u = Kp[0, 0] * pc[front, 0] / z[front] + Kp[0, 2]
+        v = Kp[1, 1] * pc[front, 1] / z[front] + Kp[1, 2]
         if ((u >= 0) & (u < w) & (v >= 0) & (v < h)).any():
             keep.append(cam)
     return keep
@@ -60,6 +72,7 @@ def _depth_at(points: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray, np.ndarr
     depth): z their own z-depth, d the depth map at their pixel; valid = in front, inside the image,
     a finite positive depth there (invalid returns are 0 or non-finite)."""
     K, c2w, w, h, depth = cam
+    K = pixel_floor_K(K)
     # world -> camera: R^T (x - t), each coordinate summed in the native kernel's order (a BLAS
     # product may fuse or reorder the sums: a point on a pixel border could land on the other side)
     R = c2w[:3, :3]
@@ -96,7 +109,7 @@ def _any_camera(points: np.ndarray, cameras, tolerance: float, surface: bool, te
     if len(state):
         points = np.ascontiguousarray(points, dtype=np.float64)
         for K, c2w, _, _, depth in cameras:
-            test(points, c2w, K, depth, tolerance, surface, state)
+            test(points, c2w, pixel_floor_K(K), depth, tolerance, surface, state)
     return state.view(bool)
 
 

@@ -101,18 +101,16 @@ def _carve(shell: np.ndarray, origin: np.ndarray, pitch: float, views, pad: int,
     """
     from scipy import ndimage
 
-    from psimap.camera import nearest_pixels
+    from psimap.completion.freespace import check_cameras, known_free
 
     dims = np.array(shell.shape)
     ii = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"), axis=-1).reshape(-1, 3)
     centres = origin + (ii + 0.5) * pitch
-    free = np.zeros(len(ii), bool)
-    for v in views:
-        H, W = v.depth.shape
-        u, w, z, ok = nearest_pixels(centres, v.K, v.c2w, W, H, near=1e-3)
-        d = np.where(ok, v.depth[w, u], 0.0)
-        free |= ok & (d > 0) & (z < d - pitch)
-    solid = ~free.reshape(dims)
+    # completion's depth test (native where built): a numpy projection per view cost 10.8 of a
+    # 150-frame chess export's 160 s (9 carves of up to 2 M cells, 150 views each)
+    cams = check_cameras([(v.K, v.c2w, v.depth.shape[1], v.depth.shape[0]) for v in views],
+                         [v.depth for v in views])
+    solid = ~known_free(centres, cams, pitch).reshape(dims)
     # only the shell's box (the pad cells around it are outside), the support layer included
     box = np.zeros(dims, bool)
     box[pad:-pad, pad:-pad, (0 if floor else pad):-pad] = True
