@@ -1,7 +1,7 @@
 """Observed free space from depth frames.
 
 A point x is known-free when some camera sees it in front of the observed surface: x projects inside
-the image, the depth there is valid, and x's depth along the optical axis is smaller than the
+the image, the depth at the pixel whose centre is nearest (`pixel_floor_K`) is valid, and x's depth along the optical axis is smaller than the
 observed depth by more than `tolerance`. Pixels with no depth (0 / NaN) say nothing. The tests run
 in the renderer's native module where it is built (psimap.render.native.depth_test: one pass per
 camera over the points not yet decided); the numpy forms `known_free_reference` and
