@@ -27,7 +27,7 @@ FOLDERS = {"psimap": "psimap", "exporters": "psimap.exporters", "completion": "p
 #   written scene in MuJoCo): they come before exporters and never import it.
 STAGES = [
     # shared helpers every stage uses: atomic writes, cameras, pixel / rotation / sampling maths
-    ("base", ("psimap.io_utils", "psimap.camera", "psimap.transforms", "psimap.nonfinite")),
+    ("base", ("psimap.io_utils", "psimap.camera", "psimap.transforms", "psimap.nonfinite", "psimap.cores")),
     ("data", ("psimap.data",)),
     ("geometry", ("psimap.geometry",)),
     # model-free pseudo-labels of a capture (`psimap segment`): planes and clusters of its frames

@@ -157,10 +157,11 @@ def test_cli_runs_the_method_it_is_given(ball_box_ckpt, tmp_path, installed, cap
     # the installed method, by name through the CLI
     rc, third = _export(ball_box_ckpt, tmp_path / "bounds", "--completion", "bounds")
     assert rc == 0 and {o["completion_method"] for o in third.values()} == {"bounds"}
-    # the ball closed as the box around what was seen of it: 1.50 x the ball's volume (auto's
-    # completion 1.11 x: fusion thickens a surface; the forced cylinder's 1.30 x)
+    # the ball closed as the box around what was seen of it, carved by the free space the views saw:
+    # 1.22 x the ball's volume (the box alone 1.9 x; the forced cylinder's 1.06 x; 1.50 and 1.30 x
+    # while the depth tests read the pixel half a pixel off, which carved less)
     ball = 4 / 3 * np.pi * 0.07 ** 3
-    assert third["ball_4"]["physics"]["volume_m3"] > 1.4 * ball > forced["ball_4"]["physics"]["volume_m3"]
+    assert 1.1 * forced["ball_4"]["physics"]["volume_m3"] < third["ball_4"]["physics"]["volume_m3"] < 1.6 * ball
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:        # argparse: not a registered method
         _export(ball_box_ckpt, tmp_path / "x", "--completion", "blob")

@@ -16,7 +16,7 @@ import numpy as np
 
 from psimap import PsimapError
 from psimap.data.frames import TRAIN_FRAMES, evenly_spaced
-from psimap.threads import available_cores
+from psimap.cores import available_cores
 from psimap.segment.frame import CLASS_TABLE, Capture, SegmentParams, camera_points, pixel_normals, segment_frame
 
 # Frames the capture-wide pass reads (evenly spaced): enough for up and the floor in a room walk.

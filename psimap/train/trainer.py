@@ -17,7 +17,7 @@ import torch
 
 from psimap import PsimapError
 from psimap.data.frames import evenly_spaced
-from psimap.threads import available_cores
+from psimap.cores import available_cores
 from psimap.nonfinite import Diverged, NonFiniteGuard, backward_if_finite
 from psimap.panoptic.fit import View
 from psimap.train.config import TrainConfig
