@@ -163,10 +163,10 @@ def _refine_by_planes(up: np.ndarray, points: np.ndarray, normals: np.ndarray) -
     point-based fit, because the normals of surfels seen obliquely through noisy depth lean towards
     the camera (7-Scenes chess: the normals' estimate was 5.8 degrees off the floor's and the table's
     planes, which agreed within 0.7; the floor then split into height levels). RANSAC planes
-    (open3d) on the centres of surfaces within PLANE_WINDOW_DEGREES of up; those within
-    PLANE_AGREE_DEGREES of it holding at least PLANE_MIN_SHARE of the points vote with their inlier
-    counts. Returns up unchanged when no plane qualifies."""
-    import open3d as o3d
+    (psimap.geometry.planes, seeded) on the centres of surfaces within PLANE_WINDOW_DEGREES of up;
+    those within PLANE_AGREE_DEGREES of it holding at least PLANE_MIN_SHARE of the points vote with
+    their inlier counts. Returns up unchanged when no plane qualifies."""
+    from psimap.geometry.planes import ransac_plane
 
     sel = np.abs(normals @ up) >= np.cos(np.radians(PLANE_WINDOW_DEGREES))
     pts = points[sel]
@@ -175,19 +175,20 @@ def _refine_by_planes(up: np.ndarray, points: np.ndarray, normals: np.ndarray) -
     lo, hi = np.percentile(pts, [1, 99], axis=0)
     # inlier band: a few sensor-noise widths at room scale, proportional for larger scenes
     thr = max(0.005, 0.002 * float(np.linalg.norm(hi - lo)))
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    o3d.utility.random.seed(0)
+    rng = np.random.default_rng(0)                      # the same up on every run
     votes = np.zeros(3)
+    left = pts
     for _ in range(PLANE_FITS):
-        if len(cloud.points) < PLANE_MIN_POINTS:
+        if len(left) < PLANE_MIN_POINTS:
             break
-        plane, inliers = cloud.segment_plane(thr, 3, 1000)
-        n = np.asarray(plane[:3], np.float64)
-        n = n / max(np.linalg.norm(n), 1e-12)
+        plane, inliers = ransac_plane(left, thr, rng, iterations=1000)
+        if len(inliers) == 0:
+            break
+        n = plane[:3]
         n = n if n @ up >= 0 else -n
         if n @ up >= np.cos(np.radians(PLANE_AGREE_DEGREES)) and len(inliers) >= PLANE_MIN_SHARE * len(pts):
             votes += len(inliers) * n
-        cloud = cloud.select_by_index(inliers, invert=True)
+        left = np.delete(left, inliers, axis=0)
     if not votes.any():
         return up
     return votes / np.linalg.norm(votes)

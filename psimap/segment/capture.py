@@ -145,8 +145,7 @@ def segment_capture(data, *, up: str = "auto", every: int = 0, params: SegmentPa
     if preview is not None:
         preview_path = check_output_file(preview or root / "segment_preview.png", what="preview")
 
-    import open3d  # noqa: F401  (imported before the clock starts: a second of imports is no frame's time)
-    import scipy.ndimage  # noqa: F401
+    import scipy.ndimage  # noqa: F401  (imported before the clock starts: no frame's time)
 
     t0 = time.perf_counter()
     survey_idx = indices[:: max(1, len(indices) // SURVEY_FRAMES)][:SURVEY_FRAMES]
@@ -171,9 +170,9 @@ def segment_capture(data, *, up: str = "auto", every: int = 0, params: SegmentPa
 
         from tqdm import tqdm
 
-        # frames are independent: one per core on threads (most of a frame is NumPy, SciPy and
-        # Open3D outside the GIL; each frame keeps its own seed, so the labels are those of one
-        # thread: tests/test_segment.py), read here in order, a few ahead of the writer
+        # frames are independent: one per core on threads (most of a frame is NumPy and SciPy
+        # outside the GIL; each frame draws from its own seeded generator, so the labels are those
+        # of one thread: tests/test_segment.py), read here in order, a few ahead of the writer
         todo = iter(zip(indices, names))
         pending = deque()
         with ThreadPoolExecutor(n_workers) as ex, tqdm(total=len(indices), desc="psimap segment: frames",

@@ -9,14 +9,12 @@ height above the floor says floor, support or ceiling.
 """
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from psimap.transforms import PIXEL_CENTER
 
-RANSAC_LOCK = threading.Lock()      # fit_planes: one frame's RANSAC rounds at a time
 
 # The class table written to labels.json: stuff first, then the thing classes by size.
 FLOOR, WALL, CEILING, SUPPORT, OBJECT, FURNITURE = 1, 2, 3, 4, 5, 6
@@ -214,8 +212,9 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
     class of the stuff plane each pixel lies on by distance alone (normal aside; 0 = none), the height
     of the support each support pixel belongs to (NaN elsewhere) and one dict per plane kept (class,
     height, area)."""
-    import open3d as o3d
     from scipy import ndimage
+
+    from psimap.geometry.planes import ransac_plane
 
     H, W = usable.shape
     stuff = np.zeros((H, W), np.uint16)
@@ -237,86 +236,79 @@ def fit_planes(world: np.ndarray, wnormals: np.ndarray, valid: np.ndarray, usabl
     heights = world @ up
     min_inliers = max(30, len(idx) // 50)
     pool = idx
-    # Open3D draws RANSAC samples from one process-wide generator: a frame seeds it and then asks
-    # for its planes one by one, and a frame labelled on another thread (segment_capture) must not
-    # reseed it in between, or the labels would depend on the thread timing
-    with RANSAC_LOCK:
-        o3d.utility.random.seed(int(rng.integers(2**31)))      # the same labels on every run
-        for _ in range(params.max_planes):
-            if len(pool) < min_inliers:
-                break
-            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_all[pool]))
-            thr = float(params.noise_k * np.median(sig_all[pool])) + 0.003
-            model, inl = pc.segment_plane(distance_threshold=thr, ransac_n=3, num_iterations=200,
-                                          probability=0.99999999)
-            inl = np.asarray(inl, np.int64)
-            if len(inl) < min_inliers:
-                break
-            n = np.asarray(model[:3], np.float64)
-            d = float(model[3]) / np.linalg.norm(n)
-            n = n / np.linalg.norm(n)
-            # the side the cameras saw: most sampled normals of the inliers point that way
-            if float(np.sum(nrm_all[pool[inl]] @ n)) < 0:
-                n, d = -n, -d
-            sample = pts_all[pool[inl]]
-            pool = np.delete(pool, inl)
-            c_up = float(n @ up)
-            # Snapped to gravity: a floor or table top is level and a wall plumb; a plane through three
-            # noisy points is tilted a little, enough to lose the far side of a table top.
-            if abs(c_up) >= cos_h:
-                kind = "up" if c_up > 0 else "down"
-                n = up * np.sign(c_up)
-            elif abs(c_up) <= sin_v:
-                kind = "vertical"
-                n = n - c_up * up
-                n /= np.linalg.norm(n)
-            else:
-                continue                                    # a slanted plane: a ramp, a lid, a roof of a box
-            d = -float(np.median(sample @ n))
+    for _ in range(params.max_planes):
+        if len(pool) < min_inliers:
+            break
+        thr = float(params.noise_k * np.median(sig_all[pool])) + 0.003
+        # seeded numpy RANSAC: the same labels on every run, whichever thread labels the frame
+        model, inl = ransac_plane(pts_all[pool], thr, rng, iterations=200)
+        if len(inl) < min_inliers:
+            break
+        n = np.asarray(model[:3], np.float64)
+        d = float(model[3]) / np.linalg.norm(n)
+        n = n / np.linalg.norm(n)
+        # the side the cameras saw: most sampled normals of the inliers point that way
+        if float(np.sum(nrm_all[pool[inl]] @ n)) < 0:
+            n, d = -n, -d
+        sample = pts_all[pool[inl]]
+        pool = np.delete(pool, inl)
+        c_up = float(n @ up)
+        # Snapped to gravity: a floor or table top is level and a wall plumb; a plane through three
+        # noisy points is tilted a little, enough to lose the far side of a table top.
+        if abs(c_up) >= cos_h:
+            kind = "up" if c_up > 0 else "down"
+            n = up * np.sign(c_up)
+        elif abs(c_up) <= sin_v:
+            kind = "vertical"
+            n = n - c_up * up
+            n /= np.linalg.norm(n)
+        else:
+            continue                                    # a slanted plane: a ramp, a lid, a roof of a box
+        d = -float(np.median(sample @ n))
+        dist = np.abs(world @ n + d)
+        # the offset again from every pixel near the plane (the sample's median carries its noise)
+        close = valid & (stuff == 0) & (dist < params.noise_k * sigma + 0.003)
+        if close.any():
+            d -= float(np.median((world @ n + d)[close]))
             dist = np.abs(world @ n + d)
-            # the offset again from every pixel near the plane (the sample's median carries its noise)
-            close = valid & (stuff == 0) & (dist < params.noise_k * sigma + 0.003)
-            if close.any():
-                d -= float(np.median((world @ n + d)[close]))
-                dist = np.abs(world @ n + d)
-            near = valid & (stuff == 0) & (dist < params.noise_k * sigma + 0.003)
-            # a pixel without a normal (image border, beside an invalid one) goes by its distance alone
-            member = near & (~usable | (wnormals @ n > cos_agree))
-            lab, count = _components(member)
-            if count == 0:
-                continue
-            piece_area = np.bincount(lab.ravel(), weights=np.where(member, area, 0.0).ravel(), minlength=count + 1)
-            h = float(np.median(heights[member]))
-            cls, need = 0, np.inf
-            if kind == "up":
-                if capture.floor is not None and h <= capture.floor + params.floor_tolerance:
-                    cls, need = FLOOR, params.min_stuff_piece
-                else:
-                    cls, need = SUPPORT, params.min_support_area
-            elif kind == "down":
-                if h > cam_height:                           # seen from below: over the camera's head
-                    cls, need = CEILING, params.min_stuff_piece
+        near = valid & (stuff == 0) & (dist < params.noise_k * sigma + 0.003)
+        # a pixel without a normal (image border, beside an invalid one) goes by its distance alone
+        member = near & (~usable | (wnormals @ n > cos_agree))
+        lab, count = _components(member)
+        if count == 0:
+            continue
+        piece_area = np.bincount(lab.ravel(), weights=np.where(member, area, 0.0).ravel(), minlength=count + 1)
+        h = float(np.median(heights[member]))
+        cls, need = 0, np.inf
+        if kind == "up":
+            if capture.floor is not None and h <= capture.floor + params.floor_tolerance:
+                cls, need = FLOOR, params.min_stuff_piece
             else:
-                cls, need = WALL, params.min_wall_area
-            if cls == 0:
-                continue
-            big = piece_area >= need
+                cls, need = SUPPORT, params.min_support_area
+        elif kind == "down":
+            if h > cam_height:                           # seen from below: over the camera's head
+                cls, need = CEILING, params.min_stuff_piece
+        else:
+            cls, need = WALL, params.min_wall_area
+        if cls == 0:
+            continue
+        big = piece_area >= need
+        big[0] = False
+        if cls == WALL and big.any():
+            # one wall: its large piece qualifies it; smaller pieces of the same plane (between
+            # objects standing against it) are wall too
+            big = piece_area >= params.min_stuff_piece
             big[0] = False
-            if cls == WALL and big.any():
-                # one wall: its large piece qualifies it; smaller pieces of the same plane (between
-                # objects standing against it) are wall too
-                big = piece_area >= params.min_stuff_piece
-                big[0] = False
-            if not big.any():
-                continue
-            take = big[lab]
-            stuff[take] = cls
-            # beside the pieces taken: the specks and rims their normal test lost (not a far coplanar top)
-            beside = ndimage.binary_dilation(take, iterations=3)
-            on_plane[near & beside & (on_plane == 0)] = cls
-            if cls == SUPPORT:
-                level[take] = h
-            planes.append({"class": STUFF_NAMES[cls], "height": h, "area": float(piece_area[big].sum())})
+        if not big.any():
+            continue
+        take = big[lab]
+        stuff[take] = cls
+        # beside the pieces taken: the specks and rims their normal test lost (not a far coplanar top)
+        beside = ndimage.binary_dilation(take, iterations=3)
+        on_plane[near & beside & (on_plane == 0)] = cls
+        if cls == SUPPORT:
+            level[take] = h
+        planes.append({"class": STUFF_NAMES[cls], "height": h, "area": float(piece_area[big].sum())})
     return stuff, on_plane, level, planes
 
 
