@@ -108,3 +108,15 @@ def test_too_few_collinear_and_repeated_points_give_no_plane():
     pts = np.concatenate([plane_pts, np.repeat(plane_pts[:1], 600, axis=0), off])
     plane, inl = ransac_plane(pts, 0.01, np.random.default_rng(2), iterations=2000)
     assert _angle_deg(plane[:3], [0, 0, 1]) < 1e-6 and np.array_equal(inl, np.arange(900))
+
+
+def test_a_scene_in_geographic_coordinates_fits_as_well_as_at_the_origin():
+    """UTM-like coordinates (hundreds of kilometres): hypotheses are scored in float32 about the
+    centroid, so the plane and its inliers are those of the same scene at the origin."""
+    pts, normal, _ = _scene()
+    offset = np.array([412345.0, 5412345.0, 230.0])
+    ref_plane, ref_inl = ransac_plane(pts, 0.005, np.random.default_rng(1))
+    plane, inl = ransac_plane(pts + offset, 0.005, np.random.default_rng(1))
+    assert _angle_deg(plane[:3], normal) < 0.05
+    assert len(np.setxor1d(inl, ref_inl)) <= 5
+    assert abs(abs(plane[:3] @ (pts[0] + offset) + plane[3])) < 0.005

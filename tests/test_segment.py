@@ -180,6 +180,103 @@ def test_nan_and_zero_depth_pixels_are_left_unlabelled_and_do_not_split_the_rest
     assert np.mean(sem[(gt == 0) & ~bad & (depth > 0)] == FLOOR) > 0.5
 
 
+def _cabinet_scene():
+    """A 0.9 m cabinet with a box and a bottle on its top (set back from its front) and a 1.3 m post
+    on the floor beside it; the cabinet top's own up-facing samples (a grid, gaps where the box and
+    the bottle stand)."""
+    parts = [box((0.6, 0.4, 0.9), (0.0, 0.8, 0.45), 1), box((0.15, 0.15, 0.15), (0.05, 0.75, 0.975), 2),
+             box((0.08, 0.08, 0.2), (-0.18, 0.7, 1.0), 3), box((0.1, 0.1, 1.3), (0.55, 0.75, 0.65), 4)]
+    xs, ys = np.meshgrid(np.arange(-0.29, 0.3, 0.015), np.arange(0.61, 1.0, 0.015))
+    free = ~((np.abs(xs - 0.05) < 0.08) & (np.abs(ys - 0.75) < 0.08))
+    free &= ~((np.abs(xs + 0.18) < 0.05) & (np.abs(ys - 0.7) < 0.05))
+    top = np.stack([xs[free], ys[free], np.full(free.sum(), 0.9)], 1)
+    return parts, top
+
+
+def test_supports_the_capture_saw_from_above_are_levels_with_filled_footprints():
+    """support_levels: the cabinet top (0.24 m^2, two holes where things hide it) and a table top
+    around a crate are levels whose footprints cover what stands on them; a small box top and the
+    floor are none."""
+    from psimap.segment.capture import support_levels
+    from psimap.segment.frame import SegmentParams, horizontal_basis
+
+    _, top = _cabinet_scene()
+    small = np.stack(np.meshgrid(np.arange(1.0, 1.2, 0.015), np.arange(0.0, 0.2, 0.015)), -1).reshape(-1, 2)
+    small = np.column_stack([small, np.full(len(small), 0.3)])                   # a 0.04 m^2 box top
+    floor = np.column_stack([np.random.default_rng(0).uniform(-2, 2, (2000, 2)), np.zeros(2000)])
+    # a 1.2 x 0.8 m table top at 0.5 m with a 0.4 m crate on its middle: a hole no closing fills
+    tx, ty = np.meshgrid(np.arange(-2.0, -0.8, 0.015), np.arange(-1.0, -0.2, 0.015))
+    ring = (np.abs(tx + 1.4) > 0.2) | (np.abs(ty + 0.6) > 0.2)
+    table = np.column_stack([tx[ring], ty[ring], np.full(ring.sum(), 0.5)])
+    P = np.concatenate([top, small, floor, table])
+    N = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    up = np.array([0.0, 0.0, 1.0])
+    levels = sorted(support_levels(P, N, up, 0.0, SegmentParams()), key=lambda s: s.height)
+    assert len(levels) == 2 and abs(levels[0].height - 0.5) < 1e-9 and abs(levels[1].height - 0.9) < 1e-9
+    g = lambda x, y: np.array([x, y, 0.0]) @ horizontal_basis(up)                 # noqa: E731
+    assert levels[0].footprint(g(-1.4, -0.6)) == 2 and levels[0].footprint(g(-0.5, -0.6)) == 0
+    s = levels[1]
+    assert s.footprint(g(0.05, 0.75)) == 2 and s.footprint(g(-0.18, 0.7)) == 2   # under the box, the bottle
+    assert s.footprint(g(0.0, 0.6)) >= 1 and s.footprint(g(-0.3, 0.99)) >= 1    # the front face, a corner
+    assert s.footprint(g(0.0, 0.57)) == 1                                       # the rim, 3 cm out
+    assert s.footprint(g(0.0, 0.5)) == 0 and s.footprint(g(0.55, 0.75)) == 0    # the floor in front, the post
+    assert s.footprint(g(1.1, 0.1)) == 0                                        # the box top
+    assert 0.18 <= (s.cells == 2).sum() * s.cell ** 2 <= 0.24                    # inside the 0.24 m^2 top
+    assert 0.28 <= (s.cells >= 1).sum() * s.cell ** 2 <= 0.36                    # and a 4 cm rim
+    # without the floor level known, the floor is a support too (a tabletop close-up has none)
+    assert len(support_levels(P, N, up, None, SegmentParams())) == 3
+
+
+@pytest.mark.parametrize("eye", [[0.0, -1.2, 1.0], [0.0, -1.5, 0.95]])
+def test_what_stands_on_a_top_seen_edge_on_is_cut_from_its_front_at_the_level_the_capture_saw(eye):
+    """A camera a few centimetres over a cabinet sees its top as a sliver: no support plane, and the
+    box and the bottle on it run into its front as one cluster. With the level the survey saw from
+    above (Capture.supports) each is a cluster of its own; the post beside it, taller than the level
+    but outside the footprint, is not cut."""
+    from psimap.segment.capture import support_levels
+    from psimap.segment.frame import SegmentParams
+
+    parts, top = _cabinet_scene()
+    c2w = look_at(eye, [0, 0.8, 0.8])
+    depth, gt = cast(room(*parts), c2w)
+    _, inst, info = segment_frame(depth, None, K, c2w, Z_UP)
+    assert best_iou(inst, gt, 2) < 0.1 and best_iou(inst, gt, 3) < 0.1 and info["objects"] == 2
+    up = np.array([0.0, 0.0, 1.0])
+    capture = Capture(up=up, floor=0.0,
+                      supports=support_levels(top, np.tile(up, (len(top), 1)), up, 0.0, SegmentParams()))
+    sem, inst, info = segment_frame(depth, None, K, c2w, capture)
+    for iid in (1, 2, 3, 4):
+        assert best_iou(inst, gt, iid) > 0.9, iid
+    assert info["objects"] == 4
+    assert np.all(sem[gt == 2] == OBJECT)
+
+
+@pytest.mark.parametrize("eye", [[0.0, -0.6, 0.55], [0.3, -0.9, 0.52]])
+def test_a_bookcase_is_not_cut_at_its_boards_but_what_stands_on_a_board_is(eye):
+    """A camera at the height of a bookcase's lower board: the crate on it runs into the case as one
+    cluster. With both boards' levels known, the crate is cut from the case, and the case is not cut
+    at either board (its sides rise past them beside the boards; its top board stands on nothing)."""
+    from psimap.segment.capture import support_levels
+    from psimap.segment.frame import SegmentParams
+
+    sides = [box((0.03, 0.35, 1.6), (x, 0.9, 0.8), 1) for x in (-0.465, 0.465)]
+    boards = [box((0.9, 0.35, 0.03), (0.0, 0.9, z - 0.015), 1) for z in (0.5, 1.0, 1.6)]
+    crate = box((0.2, 0.2, 0.2), (0.0, 0.9, 0.6), 2)
+    xs, ys = np.meshgrid(np.arange(-0.44, 0.45, 0.015), np.arange(0.735, 1.07, 0.015))
+    up = np.array([0.0, 0.0, 1.0])
+    top = np.concatenate([np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, z)], 1) for z in (0.5, 1.0)])
+    capture = Capture(up=up, floor=0.0,
+                      supports=support_levels(top, np.tile(up, (len(top), 1)), up, 0.0, SegmentParams()))
+    assert sorted(round(s.height, 3) for s in capture.supports) == [0.5, 1.0]
+    c2w = look_at(eye, [0, 0.9, 0.5])
+    depth, gt = cast(room(*sides, *boards, crate), c2w)
+    _, ref, _ = segment_frame(depth, None, K, c2w, Z_UP)
+    _, inst, _ = segment_frame(depth, None, K, c2w, capture)
+    assert best_iou(inst, gt, 2) > 0.9
+    assert best_iou(inst, gt, 1) >= best_iou(ref, gt, 1) - 0.01
+    assert len(np.unique(inst[(gt == 1) & (inst > 0)])) == 1
+
+
 def test_labels_do_not_depend_on_the_world_frame():
     """The same frame in a Y-up world (a phone capture's) with up given: the same labels."""
     things = [box((0.2, 0.2, 0.25), (-0.2, 0.5, 0.125), 1), bowl((0.25, 0.45, 0.0), 2)]

@@ -17,7 +17,8 @@ import numpy as np
 from psimap import PsimapError
 from psimap.data.frames import TRAIN_FRAMES, evenly_spaced
 from psimap.cores import available_cores
-from psimap.segment.frame import CLASS_TABLE, Capture, SegmentParams, camera_points, pixel_normals, segment_frame
+from psimap.segment.frame import (CLASS_TABLE, Capture, SegmentParams, SupportLevel, camera_points, horizontal_basis,
+                                  pixel_normals, segment_frame)
 
 # Frames the capture-wide pass reads (evenly spaced): enough for up and the floor in a room walk.
 SURVEY_FRAMES = 24
@@ -29,13 +30,24 @@ FLOOR_BELOW_CAMERA = 0.9
 # ... and holds at least this share of the up-facing area the survey saw.
 FLOOR_MIN_SHARE = 0.05
 HISTOGRAM_BIN = 0.02
+# Supports seen from above (support_levels): footprint raster cells (m), and the gaps in one that are
+# closed (m): a top's pixels seen obliquely lie a few centimetres apart.
+SUPPORT_CELL = 0.02
+SUPPORT_GAP = 0.1
+# ... at most this many cells across (a larger level gets larger cells: a warehouse floor's mezzanine),
+# and the levels looked at (the most sampled first): a cap on the work, not on what a room holds.
+SUPPORT_MAX_CELLS = 1000
+SUPPORT_MAX_LEVELS = 32
+# ... and its rim (cells) added around it: a top's front face seen through the noise.
+SUPPORT_RIM_CELLS = 2
 
 
-def survey(seq, indices, up_spec: str = "auto") -> tuple[Capture, dict]:
+def survey(seq, indices, up_spec: str = "auto", params: SegmentParams | None = None) -> tuple[Capture, dict]:
     """The capture-wide pass over frames `indices` of `seq`: (Capture, summary dict)."""
     from psimap.geometry.depth_noise import estimate_depth_noise
     from psimap.geometry.gravity import resolve_up
 
+    params = params or SegmentParams()
     P, Nn, A, c2ws, depths = [], [], [], [], []
     for i in indices:
         f = seq[i]
@@ -71,9 +83,12 @@ def survey(seq, indices, up_spec: str = "auto") -> tuple[Capture, dict]:
     up = est.up
     noise = estimate_depth_noise(depths)
     floor = floor_level(P, Nn, A, up, float(np.median(C2W[:, :3, 3] @ up)))
-    capture = Capture(up=up, floor=floor, noise=noise)
+    supports = support_levels(P, Nn, up, floor, params)
+    capture = Capture(up=up, floor=floor, noise=noise, supports=supports)
     return capture, {"up": [round(float(v), 4) for v in up], "up_source": est.source,
                      "floor": None if floor is None else round(floor, 4),
+                     "supports": [{"height": round(s.height, 4), "area": round(float((s.cells == 2).sum()) * s.cell ** 2, 3)}
+                                  for s in supports],
                      "camera_height": round(float(np.median(C2W[:, :3, 3] @ up)), 4),
                      "noise": {f"{z:.2f} m": round(float(s), 5) for z, s in zip(*noise)}}
 
@@ -103,6 +118,62 @@ def floor_level(points, normals, area, up, camera_height: float) -> float | None
     if floor > camera_height - FLOOR_BELOW_CAMERA:
         return None
     return floor
+
+
+def support_levels(points, normals, up, floor: float | None, params: SegmentParams) -> list[SupportLevel]:
+    """The supports the survey saw from above: levels (along `up`) of up-facing samples over the
+    floor, each with the footprint its samples cover (gaps of SUPPORT_GAP closed, holes filled: what
+    stands on a top hides it), kept where a connected piece covers params.min_support_area (what a
+    frame asks of a support plane). A frame that sees such a top only edge-on is cut at it
+    (frame.cut_at_supports).
+
+    points / normals: [N, 3] world samples with camera-facing normals."""
+    from scipy import ndimage
+
+    if len(points) == 0:
+        return []
+    facing = normals @ up >= np.cos(np.radians(15.0))
+    h = points[facing] @ up
+    ground = points[facing] @ horizontal_basis(up)
+    if floor is not None:
+        keep = h > floor + params.floor_tolerance
+        h, ground = h[keep], ground[keep]
+    if len(h) < 50:
+        return []
+    lo = float(h.min())
+    hist = np.bincount(np.floor((h - lo) / HISTOGRAM_BIN).astype(np.int64))
+    level = hist + np.concatenate([hist[1:], [0]]) + np.concatenate([[0], hist[:-1]])
+    peaks = [b for b in np.argsort(-level, kind="stable") if level[b] >= 20
+             and level[b] >= level[max(b - 1, 0)] and level[b] >= level[min(b + 1, len(level) - 1)]]
+    found, taken = [], []
+    for b in peaks[:SUPPORT_MAX_LEVELS]:
+        centre = lo + (b + 0.5) * HISTOGRAM_BIN
+        if any(abs(centre - t) < 3 * HISTOGRAM_BIN for t in taken):
+            continue
+        taken.append(centre)
+        near = np.abs(h - centre) <= 1.5 * HISTOGRAM_BIN
+        g = ground[near]
+        cell = max(SUPPORT_CELL, float(np.ptp(g, axis=0).max()) / SUPPORT_MAX_CELLS)
+        close = max(1, int(round(SUPPORT_GAP / cell)))
+        disk = np.hypot(*np.mgrid[-close:close + 1, -close:close + 1]) <= close
+        origin = g.min(0) - (close + SUPPORT_RIM_CELLS + 1) * cell
+        ij = np.floor((g - origin) / cell).astype(np.int64)
+        mask = np.zeros(ij.max(0) + close + SUPPORT_RIM_CELLS + 2, bool)
+        mask[ij[:, 0], ij[:, 1]] = True
+        mask = ndimage.binary_fill_holes(ndimage.binary_closing(mask, disk))
+        parts, count = ndimage.label(mask)
+        area = np.bincount(parts.ravel(), minlength=count + 1) * cell ** 2
+        big = area >= params.min_support_area
+        big[0] = False
+        if not big.any():
+            continue
+        top = big[parts]
+        # inside it (what stands on it), and its edge with a rim (its front and the sides of the
+        # furniture it belongs to lie there, within the noise)
+        cells = np.where(ndimage.binary_erosion(top), 2,
+                         ndimage.binary_dilation(top, iterations=SUPPORT_RIM_CELLS)).astype(np.int8)
+        found.append(SupportLevel(float(np.median(h[near])), origin, cell, cells))
+    return found
 
 
 def frame_indices(count: int, every: int) -> list[int]:
@@ -149,7 +220,7 @@ def segment_capture(data, *, up: str = "auto", every: int = 0, params: SegmentPa
 
     t0 = time.perf_counter()
     survey_idx = indices[:: max(1, len(indices) // SURVEY_FRAMES)][:SURVEY_FRAMES]
-    capture, found = survey(seq, survey_idx, up)
+    capture, found = survey(seq, survey_idx, up, params)
     t_survey = time.perf_counter() - t0
     n_show = max(1, int(preview_frames))
     show = set(indices[:: max(1, len(indices) // n_show)][:n_show])
@@ -260,6 +331,9 @@ def describe(s: dict) -> str:
     floor = "not seen" if s["floor"] is None else f"{s['floor']:+.3f} m"
     lines = [f"labelled {s['frames']} of {s['of']} frames of {s['data']} -> {s['labels']}",
              f"  up {s['up']} ({s['up_source']}), floor level {floor}, cameras at {s['camera_height']:+.3f} m",
+             "  supports seen from above: " + (", ".join(f"{v['height']:+.2f} m ({v['area']:.2f} m2)"
+                                                      for v in sorted(s.get("supports", []), key=lambda v: v["height"]))
+                                            or "none"),
              f"  per frame: {s['planes_per_frame']:.1f} stuff planes, {s['objects_per_frame']:.1f} objects "
              f"(median {s['objects_median']:.0f}); planes: "
              + (", ".join(f"{k} {v}" for k, v in sorted(s["stuff_planes"].items())) or "none"),

@@ -33,6 +33,12 @@ ORIENTATION_DEGREES = 15.0
 # ball or the side of a box standing on the floor lies within the distance threshold but faces
 # elsewhere, so it stays with its object.
 NORMAL_AGREEMENT_DEGREES = 25.0
+# A pixel is over or under a support the capture saw (cut_at_supports) when it is this much (m) plus
+# the noise over or under its level: the level is a median over frames, good to about a centimetre.
+SUPPORT_LEVEL_MARGIN = 0.01
+# What stands on such a support shows pixels on its top within this much (m, plus the margin) over
+# its level: the foot of a box or a bottle, seen from over the top.
+SUPPORT_CONTACT = 0.05
 
 
 @dataclass
@@ -52,6 +58,13 @@ class SegmentParams:
     slope: float = 4.0                # depth step per pixel footprint a continuous surface may have
 
 
+def horizontal_basis(up: np.ndarray) -> np.ndarray:
+    """[3, 2]: two unit columns perpendicular to `up` [3] and to each other (the ground plane's axes)."""
+    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    return np.stack([a, np.cross(up, a)], 1)
+
+
 def large_clusters(clusters: np.ndarray, world: np.ndarray, up: np.ndarray, extent: float) -> np.ndarray:
     """Ids [K] of the clusters [H, W] (0 = none) whose points world [H, W, 3] span more than `extent`
     metres along up or along either horizontal axis (2nd..98th percentile, so a few stray pixels at
@@ -59,9 +72,7 @@ def large_clusters(clusters: np.ndarray, world: np.ndarray, up: np.ndarray, exte
     ids = np.unique(clusters[clusters > 0])
     if len(ids) == 0:
         return ids
-    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    a /= np.linalg.norm(a)
-    basis = np.stack([up, a, np.cross(up, a)], 1)                      # [3, 3] columns: up, two horizontal
+    basis = np.concatenate([up[:, None], horizontal_basis(up)], 1)      # [3, 3] columns: up, two horizontal
     big = []
     for k in ids:
         p = world[clusters == k]
@@ -72,13 +83,37 @@ def large_clusters(clusters: np.ndarray, world: np.ndarray, up: np.ndarray, exte
 
 
 @dataclass
+class SupportLevel:
+    """A support the capture-wide pass saw from above (a table, counter or cabinet top, a shelf
+    board): its height along up and its footprint, a raster of `cell`-metre squares over the ground
+    plane (horizontal_basis(up) coordinates: `origin` [2] is the corner of cell [0, 0]; cells [nx, ny]
+    are 2 inside the top (a cell in from its edge), 1 on its edge and the rim around it (its front
+    face, seen through the noise), 0 off it)."""
+
+    height: float
+    origin: np.ndarray
+    cell: float
+    cells: np.ndarray
+
+    def footprint(self, ground: np.ndarray) -> np.ndarray:
+        """[...] int8: 2 where ground-plane points `ground` [..., 2] lie inside the top, 1 on its edge
+        or rim, 0 off it."""
+        ij = np.floor((ground - self.origin) / self.cell)
+        ok = np.isfinite(ij).all(-1) & (ij >= 0).all(-1) & (ij < self.cells.shape).all(-1)
+        ij = np.where(ok[..., None], ij, 0).astype(np.int64)
+        return np.where(ok, self.cells[ij[..., 0], ij[..., 1]], 0).astype(np.int8)
+
+
+@dataclass
 class Capture:
     """What the capture-wide pass found: up [3] (unit, world), floor height along up (None: no floor
-    seen), noise model (z [B], sigma [B]) from depth_noise.estimate_depth_noise."""
+    seen), noise model (z [B], sigma [B]) from depth_noise.estimate_depth_noise, and the supports it
+    saw from above (SupportLevel; none: each frame knows only the supports it sees itself)."""
 
     up: np.ndarray
     floor: float | None
     noise: tuple = field(default_factory=lambda: (np.zeros(0), np.zeros(0)))
+    supports: list = field(default_factory=list)
 
 
 def camera_points(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -447,6 +482,50 @@ def join_fragments(labels: np.ndarray, world: np.ndarray, max_pixels: int, gap: 
     return out
 
 
+def cut_at_supports(clusters: np.ndarray, heights: np.ndarray, ground: np.ndarray, tolerance: np.ndarray,
+                    supports: list, min_part: int) -> np.ndarray:
+    """What stands on a support the capture saw from above (Capture.supports), cut from the cluster
+    that runs down past the support's level.
+
+    A frame that sees a cabinet or table top edge-on (a camera near its height: a sliver of pixels,
+    no plane) cannot tell what stands on it from its front or apron: one cluster runs from the
+    cabinet's front up the box on it. For a cluster with at least `min_part` pixels in a support's
+    footprint (its rim included: the front) more than `tolerance` under its level, each connected
+    part of it over the level (by half a tolerance) that stands on the top - its foot, the pixels
+    within SUPPORT_CONTACT over the level, at least `min_part` of them and most on the top's inside
+    (SupportLevel cells 2) - becomes a cluster of its own. The rest keeps its id: a bookcase's side
+    rises past each board beside the board, and its higher boards stand on nothing.
+
+    clusters: [H, W] ids (0 = none); heights: [H, W] along up; ground: [H, W, 2] ground-plane
+    coordinates (horizontal_basis); tolerance: [H, W] metres."""
+    from scipy import ndimage
+
+    if not supports or not clusters.any():
+        return clusters
+    eight = np.ones((3, 3), bool)
+    for support in supports:
+        n = int(clusters.max())
+        where = np.where(clusters > 0, support.footprint(ground), 0)
+        if not where.any():
+            continue
+        under = (where > 0) & (heights < support.height - tolerance)
+        candidates = np.flatnonzero(np.bincount(clusters[under], minlength=n + 1) >= min_part)
+        over = heights > support.height + 0.5 * tolerance
+        foot = over & (heights <= support.height + tolerance + SUPPORT_CONTACT)
+        for k in candidates[candidates > 0]:
+            parts, count = ndimage.label((clusters == k) & over, structure=eight)
+            if count == 0:
+                continue
+            on_top = np.bincount(parts[foot & (where == 2)], minlength=count + 1)
+            standing = (on_top >= min_part) & (on_top >= 0.5 * np.bincount(parts[foot], minlength=count + 1))
+            standing[0] = False
+            if standing.any():
+                ids = np.zeros(count + 1, np.int64)
+                ids[standing] = int(clusters.max()) + 1 + np.arange(int(standing.sum()))
+                clusters = np.where(standing[parts], ids[parts], clusters)
+    return clusters
+
+
 def absorb_support_parts(clusters: np.ndarray, stuff: np.ndarray, level: np.ndarray, heights: np.ndarray,
                          depth: np.ndarray, tolerance: float, depth_below: float = 0.12) -> tuple[np.ndarray, np.ndarray]:
     """Clusters that hang from a support are the support's furniture: a table's legs, apron and the
@@ -617,8 +696,10 @@ def segment_frame(depth: np.ndarray, rgb: np.ndarray | None, K: np.ndarray, c2w:
     clusters = grow_into(clusters, free, z, tolerance)
     clusters = merge_nested(clusters, world, capture.up, margin=0.02)
     clusters = join_fragments(clusters, world, 4 * min_pixels, 2 * tolerance + 0.005)
-    clusters, stuff = absorb_support_parts(clusters, stuff, level, world @ capture.up, z,
-                                           params.floor_tolerance)
+    heights = world @ capture.up
+    clusters = cut_at_supports(clusters, heights, world @ horizontal_basis(capture.up),
+                               params.noise_k * sigma + SUPPORT_LEVEL_MARGIN, capture.supports, max(2, min_pixels // 3))
+    clusters, stuff = absorb_support_parts(clusters, stuff, level, heights, z, params.floor_tolerance)
     if capture.floor is not None:
         clusters, stuff = absorb_floor_patches(clusters, stuff, world @ capture.up, wnormals @ capture.up, nok,
                                                capture.floor + params.floor_tolerance)
