@@ -309,7 +309,10 @@ def significant_pieces(mesh, share: float = 0.02) -> int:
     boolean leaves count for nothing)."""
     if int(mesh.body_count) <= 1:
         return int(mesh.body_count)
-    vols = np.array([abs(float(p.volume)) for p in mesh.split(only_watertight=False)])
+    # a flat crumb encloses nothing: trimesh's centre of mass for it divides 0 by 0 (a warning the
+    # user would read on every export), its volume is 0 all the same
+    with np.errstate(invalid="ignore", divide="ignore"):
+        vols = np.array([abs(float(p.volume)) for p in mesh.split(only_watertight=False)])
     total = float(vols.sum())
     return int(np.count_nonzero(vols >= share * total)) if total > 0 else len(vols)
 

@@ -2,6 +2,8 @@
 fully observed and degenerate inputs, the plugin hook."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -782,6 +784,12 @@ def test_significant_pieces_ignore_crumbs():
     assert significant_pieces(a) == 1
     assert significant_pieces(trimesh.util.concatenate([a, crumb])) == 1      # 0.1 % of the volume
     assert significant_pieces(trimesh.util.concatenate([a, crumb, b])) == 2
+    # a flat crumb (four coplanar vertices, closed): no volume, no piece, and no 0 / 0 warning
+    flat = trimesh.Trimesh([[1, 0, 0], [1.1, 0, 0], [1, 0.1, 0], [1.1, 0.1, 0]],
+                           [[0, 1, 2], [1, 3, 2], [0, 2, 1], [1, 2, 3]], process=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert significant_pieces(trimesh.util.concatenate([a, flat])) == 1
 
 
 def test_poisson_closing_gives_the_same_mesh_every_time():
