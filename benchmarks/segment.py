@@ -7,7 +7,7 @@ clusters; classes ignored, stuff kept apart), floor and wall IoU. With --train: 
 options), class-agnostic too (the segmenter names no classes). With the shared 7-Scenes chess frames
 (../shared, skipped when absent): frames/s at 640x480 and what it finds, and a contact sheet.
 
-Run: .venv/bin/python benchmarks/segment.py [--quick] [--train] [--no-write]
+Run: .venv/bin/python benchmarks/segment.py [--quick] [--train [--train-seeds 0 1 2 3 4]] [--no-write]
 """
 from __future__ import annotations
 
@@ -212,8 +212,10 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one room, one tabletop, 24 frames; no chess")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--train", action="store_true", help="also train on both label sets (seed 0 room and "
-                                                         "tabletop: ~2 min per training)")
+    ap.add_argument("--train", action="store_true", help="also train on both label sets (rooms and tabletops "
+                                                         "of --train-seeds: ~15 s per training)")
+    ap.add_argument("--train-seeds", type=int, nargs="+", default=None,
+                    help="seeds of the captures --train trains on (default: the first of --seeds)")
     ap.add_argument("--train-from", default="", help="JSON of an earlier --train run's results (printed as "
                                                      "'train: {...}'): reuse them instead of training")
     ap.add_argument("--chess-frames", type=int, default=150)
@@ -242,8 +244,13 @@ def main(argv=None) -> None:
         if args.train and not train:
             with open(work / "train.log", "w") as log:
                 for layout in ("room", "tabletop"):
-                    train[layout] = run_train(caps[(layout, seeds[0])], work, log)
-                    print(layout, train[layout], flush=True)
+                    for seed in args.train_seeds or seeds[:1]:
+                        path = caps.get((layout, seed))
+                        if path is None:
+                            path = work / f"{layout}{seed}"
+                            generate(path, seed=seed, frames=frames, layout=layout, progress=False)
+                        train[f"{layout} {seed}"] = run_train(path, work, log)
+                        print(layout, seed, train[f"{layout} {seed}"], flush=True)
             print("train:", json.dumps(train), flush=True)
         chess = None if args.quick else run_chess(work, args.chess_frames)
         report(rows, train, chess, args, seeds, frames)
@@ -275,7 +282,7 @@ def report(rows, train, chess, args, seeds, frames) -> None:
              ("small things PQ/frame (furniture void)",
               f"{mean['small_pq_frame']:.3f} (noisy labels {mean['ref_small_pq_frame']:.3f})")]
     if train:
-        body += ["", "### PQ^scene after `psimap train` (seed 0; class-agnostic, ids consistent across frames)", "",
+        body += ["", "### PQ^scene after `psimap train` (class-agnostic, ids consistent across frames)", "",
                  markdown_table(["capture", "trained on", "things PQ^scene", "small things PQ^scene", "floor IoU",
                                  "wall IoU", "train s (wall)"],
                                 [[lay, lab, f"{v[lab]['pq_things']:.3f}", f"{v[lab]['small_pq_things']:.3f}",
@@ -285,9 +292,11 @@ def report(rows, train, chess, args, seeds, frames) -> None:
                      "the union of its pixels over all frames, a predicted one likewise): what training made "
                      "consistent of per-frame ids. Same data, same default training options; the segmenter's "
                      "labels replace the generator's (`psimap segment --force` on a copy)."]
-        t = train.get("tabletop") or next(iter(train.values()))
-        heads.append(("small things PQ^scene after training on segment labels (tabletop 0)",
-                      f"{t['segment']['small_pq_things']:.3f} (noisy labels {t['noisy']['small_pq_things']:.3f})"))
+        small = {lab: float(np.mean([v[lab]["small_pq_things"] for v in train.values()])) for lab in ("noisy", "segment")}
+        body += ["", f"Mean over the {len(train)} trained captures: small things PQ^scene {small['segment']:.3f} on "
+                     f"the segmenter's labels, {small['noisy']:.3f} on the generator's noisy ones."]
+        heads.append((f"small things PQ^scene after training on segment labels (mean of {len(train)} captures)",
+                      f"{small['segment']:.3f} (noisy labels {small['noisy']:.3f})"))
     if chess:
         fps = chess["frames"] / max(chess["cpu_s"] - chess["survey_seconds"], 1e-9)
         body += ["", f"### 7-Scenes chess ({chess['frames']} real Kinect frames, 640x480, scratch copy)", "",
