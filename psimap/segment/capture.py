@@ -17,8 +17,8 @@ import numpy as np
 from psimap import PsimapError
 from psimap.data.frames import TRAIN_FRAMES, evenly_spaced
 from psimap.cores import available_cores
-from psimap.segment.frame import (CLASS_TABLE, Capture, SegmentParams, SupportLevel, camera_points, horizontal_basis,
-                                  pixel_normals, segment_frame)
+from psimap.segment.frame import (CLASS_TABLE, ORIENTATION_DEGREES, Capture, SegmentParams, SupportLevel, camera_points,
+                                  horizontal_basis, pixel_normals, segment_frame)
 
 # Frames the capture-wide pass reads (evenly spaced): enough for up and the floor in a room walk.
 SURVEY_FRAMES = 24
@@ -93,6 +93,15 @@ def survey(seq, indices, up_spec: str = "auto", params: SegmentParams | None = N
                      "noise": {f"{z:.2f} m": round(float(s), 5) for z, s in zip(*noise)}}
 
 
+def height_levels(h: np.ndarray, weights: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """(lowest height, [B] weight per HISTOGRAM_BIN from it) of heights `h` [N] (weights [N]; None:
+    a count each), each bin with its two neighbours': a level spreads over a bin or two (noise, a
+    tilt of a degree)."""
+    lo = float(h.min())
+    hist = np.bincount(np.floor((h - lo) / HISTOGRAM_BIN).astype(np.int64), weights=weights)
+    return lo, hist + np.concatenate([hist[1:], [0]]) + np.concatenate([[0], hist[:-1]])
+
+
 def floor_level(points, normals, area, up, camera_height: float) -> float | None:
     """Height along `up` of the floor: the lowest level holding FLOOR_MIN_SHARE of the up-facing area,
     when it lies FLOOR_BELOW_CAMERA below the median camera; None when no such level was seen.
@@ -100,15 +109,11 @@ def floor_level(points, normals, area, up, camera_height: float) -> float | None
     points / normals: [N, 3] world samples with camera-facing normals; area: [N] m^2."""
     if len(points) == 0:
         return None
-    facing = normals @ up >= np.cos(np.radians(15.0))
+    facing = normals @ up >= np.cos(np.radians(ORIENTATION_DEGREES))
     if area[facing].sum() <= 0:
         return None
     h, w = points[facing] @ up, area[facing]
-    lo = float(h.min())
-    bins = np.floor((h - lo) / HISTOGRAM_BIN).astype(np.int64)
-    hist = np.bincount(bins, weights=w)
-    # a level spreads over a bin or two (noise, a tilt of a degree): sum neighbouring bins
-    level = hist + np.concatenate([hist[1:], [0.0]]) + np.concatenate([[0.0], hist[:-1]])
+    lo, level = height_levels(h, w)
     big = np.flatnonzero(level >= FLOOR_MIN_SHARE * w.sum())
     if len(big) == 0:
         return None
@@ -132,7 +137,7 @@ def support_levels(points, normals, up, floor: float | None, params: SegmentPara
 
     if len(points) == 0:
         return []
-    facing = normals @ up >= np.cos(np.radians(15.0))
+    facing = normals @ up >= np.cos(np.radians(ORIENTATION_DEGREES))
     h = points[facing] @ up
     ground = points[facing] @ horizontal_basis(up)
     if floor is not None:
@@ -140,9 +145,7 @@ def support_levels(points, normals, up, floor: float | None, params: SegmentPara
         h, ground = h[keep], ground[keep]
     if len(h) < 50:
         return []
-    lo = float(h.min())
-    hist = np.bincount(np.floor((h - lo) / HISTOGRAM_BIN).astype(np.int64))
-    level = hist + np.concatenate([hist[1:], [0]]) + np.concatenate([[0], hist[:-1]])
+    lo, level = height_levels(h)
     peaks = [b for b in np.argsort(-level, kind="stable") if level[b] >= 20
              and level[b] >= level[max(b - 1, 0)] and level[b] >= level[min(b + 1, len(level) - 1)]]
     found, taken = [], []

@@ -482,8 +482,8 @@ def join_fragments(labels: np.ndarray, world: np.ndarray, max_pixels: int, gap: 
     return out
 
 
-def cut_at_supports(clusters: np.ndarray, heights: np.ndarray, ground: np.ndarray, tolerance: np.ndarray,
-                    supports: list, min_part: int) -> np.ndarray:
+def cut_at_supports(clusters: np.ndarray, heights: np.ndarray, world: np.ndarray, up: np.ndarray,
+                    tolerance: np.ndarray, supports: list, min_part: int) -> np.ndarray:
     """What stands on a support the capture saw from above (Capture.supports), cut from the cluster
     that runs down past the support's level.
 
@@ -496,12 +496,13 @@ def cut_at_supports(clusters: np.ndarray, heights: np.ndarray, ground: np.ndarra
     (SupportLevel cells 2) - becomes a cluster of its own. The rest keeps its id: a bookcase's side
     rises past each board beside the board, and its higher boards stand on nothing.
 
-    clusters: [H, W] ids (0 = none); heights: [H, W] along up; ground: [H, W, 2] ground-plane
-    coordinates (horizontal_basis); tolerance: [H, W] metres."""
+    clusters: [H, W] ids (0 = none); heights: [H, W] along `up` [3]; world: [H, W, 3];
+    tolerance: [H, W] metres."""
     from scipy import ndimage
 
     if not supports or not clusters.any():
         return clusters
+    ground = world @ horizontal_basis(up)                   # [H, W, 2]
     eight = np.ones((3, 3), bool)
     for support in supports:
         n = int(clusters.max())
@@ -697,11 +698,11 @@ def segment_frame(depth: np.ndarray, rgb: np.ndarray | None, K: np.ndarray, c2w:
     clusters = merge_nested(clusters, world, capture.up, margin=0.02)
     clusters = join_fragments(clusters, world, 4 * min_pixels, 2 * tolerance + 0.005)
     heights = world @ capture.up
-    clusters = cut_at_supports(clusters, heights, world @ horizontal_basis(capture.up),
-                               params.noise_k * sigma + SUPPORT_LEVEL_MARGIN, capture.supports, max(2, min_pixels // 3))
+    clusters = cut_at_supports(clusters, heights, world, capture.up, params.noise_k * sigma + SUPPORT_LEVEL_MARGIN,
+                               capture.supports, max(2, min_pixels // 3))
     clusters, stuff = absorb_support_parts(clusters, stuff, level, heights, z, params.floor_tolerance)
     if capture.floor is not None:
-        clusters, stuff = absorb_floor_patches(clusters, stuff, world @ capture.up, wnormals @ capture.up, nok,
+        clusters, stuff = absorb_floor_patches(clusters, stuff, heights, wnormals @ capture.up, nok,
                                                capture.floor + params.floor_tolerance)
     clusters = relabel(clusters, min_pixels)
     instance[:] = clusters.astype(np.uint16)
